@@ -1,0 +1,1 @@
+//! Datasets: seeded random-control collection and the NPZ store.

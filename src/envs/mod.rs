@@ -1,0 +1,171 @@
+//! Simulated pixel environments: one trait, one step loop, physics and rendering kept apart.
+
+mod mujoco;
+mod point_mass;
+mod reacher;
+mod render2d;
+
+pub use mujoco::SoftLimitModel;
+pub use point_mass::{PointMass, PointMassConfig};
+pub use reacher::{Reacher, ReacherConfig};
+pub use render2d::TopDownCamera;
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::error::{Error, Result};
+
+/// Observation side length in pixels: every environment renders 64x64 RGB.
+pub const FRAME_PX: usize = 64;
+/// Bytes in one observation (`FRAME_PX * FRAME_PX * 3`, row-major, RGB).
+pub const FRAME_BYTES: usize = FRAME_PX * FRAME_PX * 3;
+
+/// One rendered observation: 64x64 RGB, u8, row 0 at the top.
+pub type Frame = [u8; FRAME_BYTES];
+
+/// The environments procl knows, by their command-line names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EnvKind {
+    /// Point mass-2D (dm_control `point_mass`).
+    PointMass,
+    /// Reacher-2D (dm_control `reacher` with NewtonianVAE's joint ranges).
+    Reacher,
+}
+
+impl EnvKind {
+    /// Command-line names of all environments.
+    pub const NAMES: &'static [&'static str] = &["point-mass", "reacher"];
+
+    /// The command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            EnvKind::PointMass => "point-mass",
+            EnvKind::Reacher => "reacher",
+        }
+    }
+
+    /// Builds the environment with its default configuration.
+    pub fn make(self) -> Box<dyn Env> {
+        match self {
+            EnvKind::PointMass => Box::new(PointMass::new(PointMassConfig::default())),
+            EnvKind::Reacher => Box::new(Reacher::new(ReacherConfig::default())),
+        }
+    }
+}
+
+impl std::str::FromStr for EnvKind {
+    type Err = Error;
+    fn from_str(name: &str) -> Result<Self> {
+        match name {
+            "point-mass" | "point_mass" | "pointmass" => Ok(EnvKind::PointMass),
+            "reacher" => Ok(EnvKind::Reacher),
+            other => Err(Error::UnknownEnv(other.to_string())),
+        }
+    }
+}
+
+impl std::fmt::Display for EnvKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// The true physical state: configuration `q` and its velocity `qd` (SI units).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct State {
+    /// Configuration (m for slide joints, rad for hinges).
+    pub q: Vec<f64>,
+    /// Velocity of the configuration.
+    pub qd: Vec<f64>,
+}
+
+impl State {
+    /// `q` followed by `qd`, the layout of the dataset's `states` array.
+    pub fn to_vec(&self) -> Vec<f64> {
+        self.q.iter().chain(&self.qd).copied().collect()
+    }
+}
+
+/// A simulated system that is controlled and observed through pixels.
+///
+/// Observations never show a goal marker: goals are given as images rendered at the goal state
+/// (`set_state` then `render`). Same seed, same trajectory, same pixels, bit for bit.
+pub trait Env: Send {
+    /// Which environment this is.
+    fn kind(&self) -> EnvKind;
+    /// Control period in seconds (one action per period).
+    fn control_dt_s(&self) -> f64;
+    /// Number of action dimensions; every action component is bounded to [-1, 1].
+    fn action_dim(&self) -> usize;
+    /// Number of configuration dimensions (`q`); `qd` has the same length.
+    fn config_dim(&self) -> usize;
+    /// The current true state.
+    fn state(&self) -> State;
+    /// Sets the state; fails on a wrong length or a non-finite entry.
+    fn set_state(&mut self, state: &State) -> Result<()>;
+    /// A configuration drawn uniformly over the configuration space (the joint ranges).
+    fn sample_config(&self, rng: &mut ChaCha8Rng) -> Vec<f64>;
+    /// Advances one control period under `action` (clipped to [-1, 1]; NaN counts as 0).
+    fn step(&mut self, action: &[f64]);
+    /// Renders the current state into `frame`.
+    fn render(&mut self, frame: &mut Frame);
+    /// Distance between two configurations in the units the evaluation reports.
+    fn config_distance(&self, a: &[f64], b: &[f64]) -> f64 {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    /// Starts an episode from a seeded random configuration at rest.
+    fn reset(&mut self, seed: u64) -> Result<()> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let q = self.sample_config(&mut rng);
+        let qd = vec![0.0; q.len()];
+        self.set_state(&State { q, qd })
+    }
+}
+
+/// Clips an action to [-1, 1] per component; a non-finite component becomes 0 so bad controller
+/// output can never inject NaN into the physics.
+pub fn clip_action<const N: usize>(action: &[f64]) -> [f64; N] {
+    std::array::from_fn(|i| {
+        let a = action.get(i).copied().unwrap_or(0.0);
+        if a.is_finite() {
+            a.clamp(-1.0, 1.0)
+        } else {
+            0.0
+        }
+    })
+}
+
+/// Checks a state's lengths and finiteness for an environment with `dim` dofs.
+pub(crate) fn validate_state(env: &'static str, state: &State, dim: usize) -> Result<()> {
+    if state.q.len() != dim || state.qd.len() != dim {
+        return Err(Error::InvalidState {
+            env,
+            message: format!(
+                "expected q and qd of length {dim}, got {} and {}",
+                state.q.len(),
+                state.qd.len()
+            ),
+        });
+    }
+    if !state.q.iter().chain(&state.qd).all(|x| x.is_finite()) {
+        return Err(Error::InvalidState {
+            env,
+            message: "non-finite entry".into(),
+        });
+    }
+    Ok(())
+}
+
+/// Uniform sample in `[lo, hi]` per component.
+pub(crate) fn sample_box(rng: &mut ChaCha8Rng, ranges: &[[f64; 2]]) -> Vec<f64> {
+    ranges
+        .iter()
+        .map(|&[lo, hi]| rng.random_range(lo..=hi))
+        .collect()
+}

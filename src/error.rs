@@ -1,0 +1,68 @@
+//! The library's error type: one enum whose messages name the file, field or value at fault.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in procl's library code, with enough context to act on.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// An environment name that procl does not know.
+    #[error("unknown environment `{0}` (expected one of: {known})", known = crate::envs::EnvKind::NAMES.join(", "))]
+    UnknownEnv(String),
+
+    /// A configuration or command-line value outside its valid range.
+    #[error("invalid value for `{field}`: {message}")]
+    InvalidConfig { field: String, message: String },
+
+    /// A dataset file that is missing, truncated, corrupt or of the wrong shape.
+    #[error("dataset {path}: {message}")]
+    Dataset { path: PathBuf, message: String },
+
+    /// An output file that exists and would be overwritten.
+    #[error("{0} already exists; pass --force to overwrite it")]
+    WouldClobber(PathBuf),
+
+    /// An operating-system error on a named file.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    /// A state vector of the wrong length or with non-finite entries.
+    #[error("invalid state for {env}: {message}")]
+    InvalidState { env: &'static str, message: String },
+
+    /// Encoding an image (PNG/GIF) failed.
+    #[error("could not encode image {path}: {message}")]
+    Image { path: PathBuf, message: String },
+}
+
+/// `Result` with procl's [`Error`].
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    /// Shorthand for [`Error::InvalidConfig`].
+    pub fn config(field: impl Into<String>, message: impl Into<String>) -> Self {
+        Error::InvalidConfig {
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+
+    /// Shorthand for [`Error::Dataset`].
+    pub fn dataset(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        Error::Dataset {
+            path: path.into(),
+            message: message.into(),
+        }
+    }
+
+    /// Shorthand for [`Error::Io`].
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

@@ -1,0 +1,55 @@
+//! Safe file output: refuse to clobber, write to a temporary sibling, then rename into place.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+
+/// Fails with [`Error::WouldClobber`] when `path` exists and `force` is false.
+pub fn check_writable(path: &Path, force: bool) -> Result<()> {
+    if path.exists() && !force {
+        return Err(Error::WouldClobber(path.to_path_buf()));
+    }
+    Ok(())
+}
+
+/// The temporary sibling a file is written to before it is renamed over `path`.
+fn temp_sibling(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
+}
+
+/// Writes `path` atomically: `write` fills a temporary file in the same folder, which is
+/// renamed over `path` only once it is complete, so a crash never leaves a half-written file
+/// and an existing file survives any failure. Refuses to replace an existing file unless `force`.
+pub fn write_atomically<T>(
+    path: &Path,
+    force: bool,
+    write: impl FnOnce(&mut BufWriter<File>) -> Result<T>,
+) -> Result<T> {
+    check_writable(path, force)?;
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+    }
+    let temp = temp_sibling(path);
+    let result = (|| {
+        let file = File::create(&temp).map_err(|e| Error::io(path, e))?;
+        let mut writer = BufWriter::new(file);
+        let value = write(&mut writer)?;
+        writer.flush().map_err(|e| Error::io(path, e))?;
+        let file = writer
+            .into_inner()
+            .map_err(|e| Error::io(path, e.into_error()))?;
+        file.sync_all().map_err(|e| Error::io(path, e))?;
+        std::fs::rename(&temp, path).map_err(|e| Error::io(path, e))?;
+        Ok(value)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    result
+}

@@ -1,0 +1,13 @@
+//! procl: PD-controllable latent spaces learned from pixels (ProCL, Wang, Kobilarov, Hager).
+//!
+//! Data flows through the modules in order: [`envs`] simulate and render systems, [`data`]
+//! collects random-control datasets to NPZ.
+
+mod error;
+mod fsutil;
+
+pub mod data;
+pub mod envs;
+
+pub use error::{Error, Result};
+pub use fsutil::{check_writable, write_atomically};

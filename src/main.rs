@@ -1,0 +1,2 @@
+//! The `procl` command line.
+fn main() {}
