@@ -22,11 +22,11 @@ pub enum Error {
     WouldClobber(PathBuf),
 
     /// An operating-system error on a named file.
-    #[error("{path}: {source}")]
+    /// (The OS error is part of the message, not a `source`, so chains print it once.)
+    #[error("{path}: {cause}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
 
     /// A state vector of the wrong length or with non-finite entries.
@@ -62,7 +62,7 @@ impl Error {
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.into(),
-            source,
+            cause: source,
         }
     }
 }

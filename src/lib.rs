@@ -5,9 +5,11 @@
 
 mod error;
 mod fsutil;
+mod image_io;
 
 pub mod data;
 pub mod envs;
 
 pub use error::{Error, Result};
 pub use fsutil::{check_writable, write_atomically};
+pub use image_io::RgbImage;

@@ -169,3 +169,37 @@ pub(crate) fn sample_box(rng: &mut ChaCha8Rng, ranges: &[[f64; 2]]) -> Vec<f64> 
         .map(|&[lo, hi]| rng.random_range(lo..=hi))
         .collect()
 }
+
+/// Steps between the frames of a [`render_strip`].
+pub const STRIP_STRIDE: usize = 10;
+
+/// Renders `frames` frames (every [`STRIP_STRIDE`]th step) of a seeded random-control episode
+/// side by side, each upscaled `scale` times: what a model trained on `kind` sees.
+pub fn render_strip(
+    kind: EnvKind,
+    seed: u64,
+    frames: usize,
+    scale: usize,
+) -> Result<crate::RgbImage> {
+    if frames == 0 || scale == 0 {
+        return Err(Error::config("frames/scale", "must be at least 1"));
+    }
+    let mut config = crate::data::CollectConfig::new(kind, seed);
+    config.transitions = ((frames - 1) * STRIP_STRIDE).max(2);
+    config.episode_len = config.transitions;
+    let data = crate::data::collect(&config, |_| {})?;
+    let side = FRAME_PX * scale;
+    let gap = scale.max(1);
+    let mut image = crate::RgbImage::new(frames * side + (frames - 1) * gap, side);
+    image.pixels.fill(255);
+    for k in 0..frames {
+        image.blit_scaled(
+            data.frame(0, k * STRIP_STRIDE),
+            FRAME_PX,
+            k * (side + gap),
+            0,
+            scale,
+        );
+    }
+    Ok(image)
+}

@@ -129,7 +129,8 @@ struct ActiveLimit {
 ///
 /// `invweight0` is MuJoCo's `dof_invweight0`: the diagonal of `M^-1` at the model's reference
 /// configuration, which MuJoCo uses (instead of the current `M`) to scale the regulariser.
-pub fn limit_forces(
+#[allow(clippy::too_many_arguments)]
+fn limit_forces(
     q: [f64; 2],
     qd: [f64; 2],
     joints: &[Joint; 2],

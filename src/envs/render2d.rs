@@ -120,11 +120,6 @@ impl Canvas {
         }
     }
 
-    /// The camera this canvas renders with.
-    pub fn camera(&self) -> &TopDownCamera {
-        &self.camera
-    }
-
     /// Draws `shapes` (in order) over the floor and writes the RGB result into `frame`.
     pub fn render(&mut self, shapes: &[Shape], frame: &mut Frame) {
         self.scratch.data_mut().copy_from_slice(self.floor.data());

@@ -1,0 +1,170 @@
+//! Random-control data collection (spec.md 2): uniform actions held for 1-5 steps, episodes
+//! from uniformly random configurations at rest, every episode seeded from (seed, episode).
+
+use ndarray::{Array3, Array5};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta};
+use crate::envs::{EnvKind, FRAME_PX, Frame};
+use crate::error::{Error, Result};
+
+/// What to collect.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CollectConfig {
+    /// Environment to drive.
+    pub env: EnvKind,
+    /// Total transitions (episodes x steps per episode).
+    pub transitions: usize,
+    /// Steps per episode `T`; the dataset holds `T + 1` frames per episode.
+    pub episode_len: usize,
+    /// Master seed: episode `k` draws from ChaCha8 stream `k` of this seed.
+    pub seed: u64,
+    /// An action is held for a uniformly drawn 1..=`max_hold_steps` steps.
+    pub max_hold_steps: usize,
+}
+
+impl CollectConfig {
+    /// spec.md 2 defaults for `env`: 10,000 transitions (Fetch: 50,000) in episodes of 100 steps.
+    pub fn new(env: EnvKind, seed: u64) -> Self {
+        Self {
+            env,
+            transitions: 10_000,
+            episode_len: 100,
+            seed,
+            max_hold_steps: 5,
+        }
+    }
+
+    /// Number of episodes, after checking that the sizes are usable.
+    fn episodes(&self) -> Result<usize> {
+        if self.transitions == 0 {
+            return Err(Error::config("transitions", "must be at least 1"));
+        }
+        if self.episode_len < 2 {
+            return Err(Error::config(
+                "episode_len",
+                "must be at least 2 (a training sample spans 3 frames)",
+            ));
+        }
+        if self.max_hold_steps == 0 {
+            return Err(Error::config("max_hold_steps", "must be at least 1"));
+        }
+        let len = self.episode_len.min(self.transitions);
+        if !self.transitions.is_multiple_of(len) {
+            return Err(Error::config(
+                "transitions",
+                format!(
+                    "{} is not a multiple of the episode length {len}",
+                    self.transitions
+                ),
+            ));
+        }
+        Ok(self.transitions / len)
+    }
+}
+
+/// Collects a dataset; `progress` is called with the number of finished transitions.
+pub fn collect(config: &CollectConfig, mut progress: impl FnMut(usize)) -> Result<Dataset> {
+    let episodes = config.episodes()?;
+    let steps = config.episode_len.min(config.transitions);
+    let mut env = config.env.make();
+    let (du, dq) = (env.action_dim(), env.config_dim());
+    let mut obs = Array5::<u8>::zeros((episodes, steps + 1, FRAME_PX, FRAME_PX, 3));
+    let mut actions = Array3::<f32>::zeros((episodes, steps, du));
+    let mut states = Array3::<f32>::zeros((episodes, steps + 1, 2 * dq));
+    let mut frame: Frame = [0; crate::envs::FRAME_BYTES];
+
+    for episode in 0..episodes {
+        let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+        rng.set_stream(episode as u64);
+        let start = env.sample_config(&mut rng);
+        env.set_state(&crate::envs::State {
+            qd: vec![0.0; start.len()],
+            q: start,
+        })?;
+        let mut action = vec![0.0; du];
+        let mut hold_left = 0;
+        for t in 0..=steps {
+            env.render(&mut frame);
+            let flat = obs.slice_mut(ndarray::s![episode, t, .., .., ..]);
+            // A freshly zeroed Array5 is in standard layout, so each frame slice is contiguous.
+            if let Some(dst) = flat.into_slice() {
+                dst.copy_from_slice(&frame);
+            }
+            for (i, x) in env.state().to_vec().into_iter().enumerate() {
+                states[[episode, t, i]] = x as f32;
+            }
+            if t == steps {
+                break;
+            }
+            if hold_left == 0 {
+                action
+                    .iter_mut()
+                    .for_each(|a| *a = rng.random_range(-1.0..=1.0));
+                hold_left = rng.random_range(1..=config.max_hold_steps);
+            }
+            hold_left -= 1;
+            for (i, &a) in action.iter().enumerate() {
+                actions[[episode, t, i]] = a as f32;
+            }
+            env.step(&action);
+        }
+        progress((episode + 1) * steps);
+    }
+    let meta = DatasetMeta {
+        format_version: DATASET_FORMAT_VERSION,
+        env: config.env,
+        control_dt_s: env.control_dt_s(),
+        seed: config.seed,
+        source: "random-control".into(),
+        procl_version: env!("CARGO_PKG_VERSION").into(),
+    };
+    Dataset::new(meta, obs, actions, states)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_are_checked() {
+        let mut config = CollectConfig::new(EnvKind::PointMass, 0);
+        config.transitions = 0;
+        assert!(collect(&config, |_| {}).is_err());
+        config.transitions = 150;
+        assert!(
+            collect(&config, |_| {})
+                .unwrap_err()
+                .to_string()
+                .contains("multiple")
+        );
+        config.transitions = 30;
+        let data = collect(&config, |_| {}).unwrap();
+        assert_eq!(data.obs.shape(), &[1, 31, 64, 64, 3]);
+    }
+
+    #[test]
+    fn actions_are_held_and_bounded() {
+        let mut config = CollectConfig::new(EnvKind::Reacher, 3);
+        config.transitions = 200;
+        let data = collect(&config, |_| {}).unwrap();
+        let a = &data.actions;
+        assert!(a.iter().all(|x| (-1.0..=1.0).contains(x)));
+        // Held for 1-5 steps: at most 5 equal in a row, and some repeats exist.
+        let (mut run, mut max_run, mut repeats) = (1, 1, 0);
+        for t in 1..a.shape()[1] {
+            if a[[0, t, 0]] == a[[0, t - 1, 0]] {
+                run += 1;
+                repeats += 1;
+            } else {
+                run = 1;
+            }
+            max_run = max_run.max(run);
+        }
+        assert!(
+            max_run <= 5 && repeats > 20,
+            "max_run {max_run}, repeats {repeats}"
+        );
+    }
+}

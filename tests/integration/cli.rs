@@ -1,0 +1,111 @@
+//! The `procl` binary: exit codes, one-line errors, no clobbering.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn procl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_procl"))
+        .args(args)
+        .output()
+        .expect("run procl")
+}
+
+/// Asserts failure with a single-line error on stderr containing `needle`.
+fn fails_with(args: &[&str], needle: &str) {
+    let out = procl(args);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{args:?} succeeded");
+    assert_eq!(
+        stderr.trim_end().lines().count(),
+        1,
+        "{args:?}: not one line: {stderr}"
+    );
+    assert!(
+        stderr.contains(needle),
+        "{args:?}: {stderr:?} lacks {needle:?}"
+    );
+}
+
+fn path_str(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn collect_render_info_and_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let npz = dir.path().join("pm.npz");
+    let out = procl(&[
+        "collect",
+        "--env",
+        "point-mass",
+        "--transitions",
+        "200",
+        "--seed",
+        "3",
+        "--out",
+        path_str(&npz),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let info = procl(&["info", "--data", path_str(&npz)]);
+    assert!(String::from_utf8_lossy(&info.stdout).contains("point-mass"));
+
+    // An existing output survives without --force.
+    let before = std::fs::read(&npz).unwrap();
+    fails_with(
+        &[
+            "collect",
+            "--env",
+            "point-mass",
+            "--transitions",
+            "100",
+            "--out",
+            path_str(&npz),
+        ],
+        "--force",
+    );
+    assert_eq!(std::fs::read(&npz).unwrap(), before);
+
+    fails_with(
+        &["collect", "--env", "cartpole", "--out", "x.npz"],
+        "unknown environment `cartpole`",
+    );
+    fails_with(
+        &[
+            "collect",
+            "--env",
+            "reacher",
+            "--transitions",
+            "0",
+            "--out",
+            "x.npz",
+        ],
+        "transitions",
+    );
+    let unwritable = dir.path().join("pm.npz").join("below-a-file.npz");
+    fails_with(
+        &[
+            "collect",
+            "--env",
+            "reacher",
+            "--transitions",
+            "10",
+            "--out",
+            path_str(&unwritable),
+        ],
+        "pm.npz",
+    );
+
+    let png = dir.path().join("strip.png");
+    let out = procl(&["render", "--env", "reacher", "--out", path_str(&png)]);
+    assert!(out.status.success());
+    assert_eq!(&std::fs::read(&png).unwrap()[1..4], b"PNG");
+
+    let truncated = dir.path().join("cut.npz");
+    std::fs::write(&truncated, &before[..before.len() / 3]).unwrap();
+    fails_with(&["info", "--data", path_str(&truncated)], "cut.npz");
+    fails_with(&["info", "--data", "/definitely/missing.npz"], "not found");
+}

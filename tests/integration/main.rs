@@ -1,0 +1,5 @@
+//! procl's integration tests, one binary: environments, datasets, the command line.
+
+mod cli;
+mod data;
+mod envs;
