@@ -33,6 +33,14 @@ pub enum Error {
     #[error("invalid state for {env}: {message}")]
     InvalidState { env: &'static str, message: String },
 
+    /// A checkpoint that is missing, corrupt or does not fit the model.
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint { path: PathBuf, message: String },
+
+    /// Training produced a non-finite loss.
+    #[error("{0}")]
+    Diverged(String),
+
     /// Encoding an image (PNG/GIF) failed.
     #[error("could not encode image {path}: {message}")]
     Image { path: PathBuf, message: String },

@@ -7,9 +7,16 @@ mod error;
 mod fsutil;
 mod image_io;
 
+mod checkpoint;
+pub mod control;
 pub mod data;
 pub mod envs;
+pub mod eval;
+pub mod losses;
+pub mod model;
+pub mod train;
 
+pub use checkpoint::{Adam, CheckpointMeta, load_checkpoint, save_checkpoint};
 pub use error::{Error, Result};
 pub use fsutil::{check_writable, write_atomically};
 pub use image_io::RgbImage;

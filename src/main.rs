@@ -9,6 +9,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use procl::data::{CollectConfig, collect};
 use procl::envs::EnvKind;
+use procl::eval::ReachConfig;
+use procl::train::{Method, RunPaths};
 
 #[derive(Parser)]
 #[command(
@@ -50,6 +52,47 @@ enum Command {
         #[arg(long)]
         data: PathBuf,
     },
+    /// Train ProCL (or the PC3 baseline) on a dataset into a run folder.
+    Train {
+        /// The .npz dataset.
+        #[arg(long)]
+        data: PathBuf,
+        /// procl | pc3 (pc3 = lambda_R 0, same networks).
+        #[arg(long)]
+        method: Option<String>,
+        /// Run folder (config.json, model.safetensors, metrics.csv, diagnostics).
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML file over the preset (`preset = "paper"|"procl"`, any config field).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Override the config's seed.
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Override the config's number of steps.
+        #[arg(long)]
+        steps: Option<u64>,
+        /// Continue the run in --out from its last checkpoint.
+        #[arg(long)]
+        resume: bool,
+        /// cpu, or cuda when built with --features cuda.
+        #[arg(long, default_value = "cpu")]
+        device: String,
+    },
+    /// Evaluate goal reaching of a trained run (latent PD and the oracle on the same tasks).
+    Eval {
+        /// Run folder written by `procl train`.
+        #[arg(long)]
+        run: PathBuf,
+        #[arg(long, default_value_t = 50)]
+        episodes: usize,
+        /// Seed of the start/goal pairs.
+        #[arg(long, default_value_t = 1000)]
+        seed: u64,
+        /// Steps per episode (default: the env's protocol horizon).
+        #[arg(long)]
+        horizon: Option<usize>,
+    },
     /// Render a strip of frames from a random episode to a PNG.
     Render {
         /// Environment: point-mass | reacher.
@@ -74,10 +117,12 @@ enum Command {
 fn progress_bar(len: u64, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(len);
     bar.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} ({per_sec}, eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{prefix} [{bar:30}] {pos}/{len} ({per_sec}, eta {eta}) {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    bar.set_message(what.to_string());
+    bar.set_prefix(what.to_string());
     bar
 }
 
@@ -126,6 +171,95 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 dataset.config_dim()
             );
         }
+        Command::Train {
+            data,
+            method,
+            out,
+            config,
+            seed,
+            steps,
+            resume,
+            device,
+        } => {
+            let dataset = procl::data::Dataset::load(&data)?;
+            let method = method.map(|m| m.parse::<Method>()).transpose()?;
+            let mut table = match &config {
+                Some(path) => {
+                    let text = std::fs::read_to_string(path)
+                        .with_context(|| format!("reading {}", path.display()))?;
+                    text.parse::<toml::Table>()
+                        .with_context(|| format!("parsing {}", path.display()))?
+                }
+                None => toml::Table::new(),
+            };
+            if let Some(seed) = seed {
+                table.insert("seed".into(), toml::Value::Integer(seed as i64));
+            }
+            if let Some(steps) = steps {
+                table.insert("steps".into(), toml::Value::Integer(steps as i64));
+            }
+            let config = procl::train::config_from_table(table, dataset.meta.env, method)
+                .with_context(|| {
+                    format!(
+                        "configuration{}",
+                        config
+                            .map(|p| format!(" {}", p.display()))
+                            .unwrap_or_default()
+                    )
+                })?;
+            let device = procl::model::device_by_name(&device)?;
+            let run = RunPaths::new(&out);
+            let bar = progress_bar(config.steps, "train");
+            let summary =
+                procl::train::train(&config, &dataset, &run, resume, &device, |step, v| {
+                    bar.set_position(step);
+                    if step % 10 == 0 {
+                        bar.set_message(format!(
+                            "cpc {:.3} cons {:.2} curv {:.4} lyap {:.4}",
+                            v.cpc, v.cons, v.curv, v.lyap
+                        ));
+                    }
+                })?;
+            bar.finish_and_clear();
+            println!(
+                "trained {} steps in {:.0} s -> {}",
+                summary.steps_done,
+                summary.seconds,
+                out.display()
+            );
+            if let Some(v) = summary.last {
+                println!(
+                    "final losses: total {:.4} cpc {:.4} cons {:.4} curv {:.5} lyap {:.5}",
+                    v.total, v.cpc, v.cons, v.curv, v.lyap
+                );
+            }
+        }
+        Command::Eval {
+            run,
+            episodes,
+            seed,
+            horizon,
+        } => {
+            let paths = RunPaths::new(&run);
+            let config = paths.load_config()?;
+            let mut protocol = ReachConfig::for_env(config.env, seed);
+            if episodes == 0 {
+                anyhow::bail!("--episodes must be at least 1");
+            }
+            protocol.episodes = episodes;
+            if let Some(h) = horizon {
+                protocol.horizon = h;
+            }
+            let bar = progress_bar(episodes as u64, "eval");
+            let report =
+                procl::eval::evaluate_run(&paths, &protocol, |k| bar.set_position(k as u64))?;
+            bar.finish_and_clear();
+            print_report(&report);
+            println!(
+                "wrote eval.json, reach.png, latent_traj.png, episode.gif in {}",
+                run.display()
+            );
+        }
         Command::Render {
             env,
             seed,
@@ -146,6 +280,33 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// Prints the results table of an evaluation.
+fn print_report(report: &procl::eval::ReachReport) {
+    let p = &report.protocol;
+    println!(
+        "{}: {} episodes, {} steps, success = final distance < {} {}",
+        report.env, p.episodes, p.horizon, p.success_threshold, p.distance_unit
+    );
+    println!(
+        "{:<26} {:>8} {:>22} {:>18}",
+        "method", "success", "final distance", "control p50/p99 us"
+    );
+    for m in &report.methods {
+        let time = match (m.control_time_us_p50, m.control_time_us_p99) {
+            (Some(a), Some(b)) => format!("{a:.0} / {b:.0}"),
+            _ => "-".into(),
+        };
+        println!(
+            "{:<26} {:>7.0}% {:>11.4} +- {:<8.4} {:>18}",
+            m.method,
+            100.0 * m.success_rate,
+            m.final_mean,
+            m.final_std,
+            time
+        );
+    }
 }
 
 fn main() -> ExitCode {

@@ -1,0 +1,321 @@
+//! Adam and checkpoints: model weights and Adam moments keyed by parameter path, in one
+//! safetensors file written atomically (temp file + rename).
+//!
+//! procl keeps its own small Adam rather than burn's optimizer because burn keys optimizer state
+//! by random parameter ids, which do not survive a save/load; keying by module path makes
+//! `--resume` exact and the file readable by any safetensors tool.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::tensor::{Device, Gradients, Tensor, TensorData};
+use safetensors::tensor::{Dtype, TensorView};
+
+use crate::error::{Error, Result};
+use crate::fsutil::write_atomically;
+
+/// Adam (Kingma & Ba) with bias correction, state keyed by parameter path.
+#[derive(Debug, Clone)]
+pub struct Adam {
+    pub beta1: f64,
+    pub beta2: f64,
+    pub epsilon: f64,
+    /// Updates applied so far.
+    pub step: u64,
+    /// First and second moments, flattened, by parameter path.
+    moments: BTreeMap<String, (Tensor<1>, Tensor<1>)>,
+}
+
+impl Default for Adam {
+    fn default() -> Self {
+        Self {
+            beta1: 0.9,
+            beta2: 0.999,
+            epsilon: 1e-8,
+            step: 0,
+            moments: BTreeMap::new(),
+        }
+    }
+}
+
+impl Adam {
+    /// Applies one update with learning rate `lr` to every parameter that has a gradient.
+    pub fn step<M: Module>(&mut self, lr: f64, module: M, grads: &Gradients) -> M {
+        self.step += 1;
+        let mut mapper = AdamMapper {
+            adam: self,
+            grads,
+            lr,
+            path: vec![],
+        };
+        module.map(&mut mapper)
+    }
+}
+
+struct AdamMapper<'a> {
+    adam: &'a mut Adam,
+    grads: &'a Gradients,
+    lr: f64,
+    path: Vec<String>,
+}
+
+impl ModuleMapper for AdamMapper<'_> {
+    fn enter_module(&mut self, name: &str, _: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _: &str, _: &str) {
+        self.path.pop();
+    }
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let value = param.val();
+        let Some(grad) = value.grad(self.grads) else {
+            return param;
+        };
+        let dims = value.dims();
+        let count: usize = dims.iter().product();
+        let grad = grad.reshape([count]);
+        let (b1, b2) = (self.adam.beta1, self.adam.beta2);
+        let key = self.path.join(".");
+        let (m, v) = match self.adam.moments.remove(&key) {
+            Some((m, v)) => (
+                m * b1 + grad.clone() * (1.0 - b1),
+                v * b2 + grad.powi_scalar(2) * (1.0 - b2),
+            ),
+            None => (grad.clone() * (1.0 - b1), grad.powi_scalar(2) * (1.0 - b2)),
+        };
+        let t = self.adam.step as i32;
+        let m_hat = m.clone() / (1.0 - b1.powi(t));
+        let v_hat = v.clone() / (1.0 - b2.powi(t));
+        let update = m_hat / (v_hat.sqrt() + self.adam.epsilon) * self.lr;
+        self.adam.moments.insert(key, (m, v));
+        let (lr_update, dims_out) = (update.reshape(dims), dims);
+        param.map(|tensor| {
+            let updated = tensor.inner() - lr_update;
+            Tensor::from_inner(updated.reshape(dims_out)).require_grad()
+        })
+    }
+}
+
+/// Collects every float parameter as (path, dims, values).
+struct Collect {
+    path: Vec<String>,
+    tensors: Vec<(String, Vec<usize>, Vec<f32>)>,
+}
+
+impl ModuleVisitor for Collect {
+    fn enter_module(&mut self, name: &str, _: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _: &str, _: &str) {
+        self.path.pop();
+    }
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let value = param.val();
+        self.tensors.push((
+            self.path.join("."),
+            value.dims().to_vec(),
+            crate::model::to_vec(value),
+        ));
+    }
+}
+
+/// Replaces every float parameter by the stored tensor of the same path and shape.
+struct Restore<'a> {
+    path: Vec<String>,
+    stored: &'a BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    file: &'a Path,
+    error: Option<Error>,
+}
+
+impl ModuleMapper for Restore<'_> {
+    fn enter_module(&mut self, name: &str, _: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _: &str, _: &str) {
+        self.path.pop();
+    }
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let key = format!("model.{}", self.path.join("."));
+        let dims = param.val().dims();
+        match self.stored.get(&key) {
+            Some((shape, values)) if shape.as_slice() == dims.as_slice() => {
+                let values = values.clone();
+                param.map(|tensor| {
+                    let device = tensor.device();
+                    crate::model::trainable(Tensor::from_data(
+                        TensorData::new(values, dims),
+                        &device,
+                    ))
+                })
+            }
+            found => {
+                let what = match found {
+                    Some((shape, _)) => {
+                        format!("`{key}` has shape {shape:?}, the model expects {dims:?}")
+                    }
+                    None => format!("missing tensor `{key}`"),
+                };
+                self.error.get_or_insert(Error::Checkpoint {
+                    path: self.file.to_path_buf(),
+                    message: what,
+                });
+                param
+            }
+        }
+    }
+}
+
+/// What a checkpoint holds besides tensors.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CheckpointMeta {
+    /// Training steps completed.
+    pub step: u64,
+}
+
+/// Writes model weights (and Adam state, if given) to `path` atomically, replacing it.
+pub fn save_checkpoint<M: Module>(
+    path: &Path,
+    model: &M,
+    adam: Option<&Adam>,
+    meta: &CheckpointMeta,
+) -> Result<()> {
+    let mut collect = Collect {
+        path: vec![],
+        tensors: vec![],
+    };
+    model.visit(&mut collect);
+    let mut entries: Vec<(String, Vec<usize>, Vec<f32>)> = collect
+        .tensors
+        .into_iter()
+        .map(|(p, d, v)| (format!("model.{p}"), d, v))
+        .collect();
+    if let Some(adam) = adam {
+        for (key, (m, v)) in &adam.moments {
+            let n = m.dims()[0];
+            entries.push((
+                format!("adam.m.{key}"),
+                vec![n],
+                crate::model::to_vec(m.clone()),
+            ));
+            entries.push((
+                format!("adam.v.{key}"),
+                vec![n],
+                crate::model::to_vec(v.clone()),
+            ));
+        }
+    }
+    let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = entries
+        .into_iter()
+        .map(|(name, dims, values)| {
+            (
+                name,
+                dims,
+                values.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            )
+        })
+        .collect();
+    let mut metadata = std::collections::HashMap::new();
+    metadata.insert(
+        "procl".to_string(),
+        serde_json::to_string(meta).unwrap_or_default(),
+    );
+    if let Some(adam) = adam {
+        metadata.insert("adam_step".to_string(), adam.step.to_string());
+    }
+    let views: Vec<(String, TensorView<'_>)> = bytes
+        .iter()
+        .map(|(name, dims, data)| {
+            TensorView::new(Dtype::F32, dims.clone(), data)
+                .map(|view| (name.clone(), view))
+                .map_err(|e| Error::Checkpoint {
+                    path: path.to_path_buf(),
+                    message: e.to_string(),
+                })
+        })
+        .collect::<Result<_>>()?;
+    let serialized =
+        safetensors::serialize(views, Some(metadata)).map_err(|e| Error::Checkpoint {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    write_atomically(path, true, |w| {
+        std::io::Write::write_all(w, &serialized).map_err(|e| Error::io(path, e))
+    })
+}
+
+/// Loads weights into `model` (same architecture) and returns the Adam state and metadata.
+pub fn load_checkpoint<M: Module>(
+    path: &Path,
+    model: M,
+    device: &Device,
+) -> Result<(M, Adam, CheckpointMeta)> {
+    let corrupt = |message: String| Error::Checkpoint {
+        path: path.to_path_buf(),
+        message,
+    };
+    let bytes = std::fs::read(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound => {
+            corrupt("not found (train a model with `procl train` first)".into())
+        }
+        _ => Error::io(path, e),
+    })?;
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
+        .map_err(|e| corrupt(format!("not a readable safetensors file ({e})")))?;
+    let tensors = safetensors::SafeTensors::deserialize(&bytes)
+        .map_err(|e| corrupt(format!("not a readable safetensors file ({e})")))?;
+    let metadata = header.metadata().clone().unwrap_or_default();
+    let meta: CheckpointMeta = metadata
+        .get("procl")
+        .and_then(|s| serde_json::from_str(s).ok())
+        .ok_or_else(|| corrupt("missing procl metadata".into()))?;
+    let mut stored = BTreeMap::new();
+    for (name, view) in tensors.tensors() {
+        if view.dtype() != Dtype::F32 {
+            return Err(corrupt(format!(
+                "tensor `{name}` is {:?}, expected F32",
+                view.dtype()
+            )));
+        }
+        let values: Vec<f32> = view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        if values.iter().any(|x| !x.is_finite()) {
+            return Err(corrupt(format!("tensor `{name}` holds non-finite values")));
+        }
+        stored.insert(name, (view.shape().to_vec(), values));
+    }
+    let mut restore = Restore {
+        path: vec![],
+        stored: &stored,
+        file: path,
+        error: None,
+    };
+    let model = model.map(&mut restore);
+    if let Some(error) = restore.error {
+        return Err(error);
+    }
+    let mut adam = Adam {
+        step: metadata
+            .get("adam_step")
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0),
+        ..Adam::default()
+    };
+    for (name, (shape, values)) in &stored {
+        if let Some(key) = name.strip_prefix("adam.m.") {
+            let v_name = format!("adam.v.{key}");
+            let (_, v_values) = stored
+                .get(&v_name)
+                .ok_or_else(|| corrupt(format!("missing `{v_name}`")))?;
+            let make = |vals: &Vec<f32>| {
+                Tensor::from_data(TensorData::new(vals.clone(), shape.clone()), device)
+            };
+            adam.moments
+                .insert(key.to_string(), (make(values), make(v_values)));
+        }
+    }
+    Ok((model, adam, meta))
+}

@@ -1,0 +1,12 @@
+//! Evaluation: the goal-reaching protocol (spec.md 4), its metrics, plots and animations.
+
+mod plots;
+mod reach;
+mod run;
+
+pub use plots::{register_font, save_episode_gif, save_latent_plot, save_reach_plot};
+pub use reach::{
+    EpisodeRecord, MethodSummary, ReachConfig, ReachReport, evaluate_reach, reach_tasks,
+    run_episode, summarise,
+};
+pub use run::{EvalOutputs, evaluate_oracle, evaluate_run};

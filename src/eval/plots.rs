@@ -1,0 +1,262 @@
+//! Figures: distance-to-goal curves (log y, mean +- std, like the paper's), latent trajectories,
+//! and an episode animation beside its goal image. All written atomically.
+
+use std::path::Path;
+use std::sync::Once;
+
+use plotters::prelude::*;
+use plotters::style::{FontStyle, register_font as plotters_register_font};
+
+use super::reach::{EpisodeRecord, MethodSummary};
+use crate::error::{Error, Result};
+use crate::image_io::RgbImage;
+
+/// Registers the embedded DejaVu Sans as plotters' `sans-serif` (no system fonts needed).
+pub fn register_font() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        // The font is a valid TTF compiled into the binary; a failure would only mean no labels.
+        let _ = plotters_register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+    });
+}
+
+const PALETTE: [RGBColor; 6] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(255, 127, 14),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+];
+
+fn image_error(path: &Path, e: impl std::fmt::Display) -> Error {
+    Error::Image {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// Draws into an in-memory RGB buffer with `draw`, then writes the PNG atomically.
+fn render_png(
+    path: &Path,
+    size: (u32, u32),
+    draw: impl FnOnce(
+        &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    ) -> std::result::Result<(), String>,
+) -> Result<()> {
+    register_font();
+    let mut buffer = vec![255u8; (size.0 * size.1 * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buffer, size).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| image_error(path, e))?;
+        draw(&root).map_err(|e| image_error(path, e))?;
+        root.present().map_err(|e| image_error(path, e))?;
+    }
+    RgbImage {
+        width: size.0 as usize,
+        height: size.1 as usize,
+        pixels: buffer,
+    }
+    .save_png(path, true)
+}
+
+/// Distance to goal vs step for each method: mean line and +- std band, log-scale y, with the
+/// success threshold dashed.
+pub fn save_reach_plot(
+    path: &Path,
+    title: &str,
+    methods: &[MethodSummary],
+    threshold: f64,
+    unit: &str,
+) -> Result<()> {
+    render_png(path, (900, 560), |root| {
+        let steps = methods
+            .iter()
+            .map(|m| m.per_step_mean.len())
+            .max()
+            .unwrap_or(1)
+            .max(2);
+        let positive = |x: f64| x.max(1e-5);
+        let hi = methods
+            .iter()
+            .flat_map(|m| {
+                m.per_step_mean
+                    .iter()
+                    .zip(&m.per_step_std)
+                    .map(|(a, b)| a + b)
+            })
+            .fold(threshold * 2.0, f64::max);
+        let lo = methods
+            .iter()
+            .flat_map(|m| m.per_step_mean.iter().copied())
+            .map(positive)
+            .fold(threshold / 5.0, f64::min);
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0f64..(steps - 1) as f64, (lo * 0.8..hi * 1.2).log_scale())
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("control step")
+            .y_desc(format!("distance to goal ({unit})"))
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        for (k, m) in methods.iter().enumerate() {
+            let color = PALETTE[k % PALETTE.len()];
+            let upper = m
+                .per_step_mean
+                .iter()
+                .zip(&m.per_step_std)
+                .enumerate()
+                .map(|(t, (a, s))| (t as f64, positive(a + s)));
+            let lower = m
+                .per_step_mean
+                .iter()
+                .zip(&m.per_step_std)
+                .enumerate()
+                .rev()
+                .map(|(t, (a, s))| (t as f64, positive(a - s)));
+            chart
+                .draw_series(std::iter::once(Polygon::new(
+                    upper.chain(lower).collect::<Vec<_>>(),
+                    color.mix(0.15),
+                )))
+                .map_err(|e| e.to_string())?;
+            let line = m
+                .per_step_mean
+                .iter()
+                .enumerate()
+                .map(|(t, a)| (t as f64, positive(*a)));
+            let label = format!("{} (success {:.0}%)", m.method, 100.0 * m.success_rate);
+            chart
+                .draw_series(LineSeries::new(line, color.stroke_width(2)))
+                .map_err(|e| e.to_string())?
+                .label(label)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+        }
+        chart
+            .draw_series(DashedLineSeries::new(
+                [(0.0, threshold), ((steps - 1) as f64, threshold)],
+                6,
+                4,
+                BLACK.stroke_width(1),
+            ))
+            .map_err(|e| e.to_string())?
+            .label("success threshold")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(|e| e.to_string())
+    })
+}
+
+/// PD trajectories in the latent plane (first two dimensions of `h`): start (circle), path,
+/// goal latent (cross), for up to `max_episodes` episodes.
+pub fn save_latent_plot(
+    path: &Path,
+    title: &str,
+    episodes: &[EpisodeRecord],
+    max_episodes: usize,
+) -> Result<()> {
+    render_png(path, (640, 640), |root| {
+        let points: Vec<(f64, f64)> = episodes
+            .iter()
+            .take(max_episodes)
+            .flat_map(|e| e.latents.iter().chain(std::iter::once(&e.goal_latent)))
+            .filter(|h| h.len() >= 2)
+            .map(|h| (h[0], h[1]))
+            .filter(|(x, y)| x.is_finite() && y.is_finite())
+            .collect();
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for &(x, y) in &points {
+            (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+        }
+        if points.is_empty() {
+            (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
+        }
+        let pad = 0.05 * (x1 - x0).max(y1 - y0).max(1e-6);
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d((x0 - pad)..(x1 + pad), (y0 - pad)..(y1 + pad))
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("h[0]")
+            .y_desc("h[1]")
+            .label_style(("sans-serif", 13))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        for (k, e) in episodes.iter().take(max_episodes).enumerate() {
+            let color = PALETTE[k % PALETTE.len()];
+            let line: Vec<(f64, f64)> = e
+                .latents
+                .iter()
+                .filter(|h| h.len() >= 2)
+                .map(|h| (h[0], h[1]))
+                .collect();
+            if let (Some(&start), true) = (line.first(), e.goal_latent.len() >= 2) {
+                chart
+                    .draw_series(LineSeries::new(line, color.stroke_width(1)))
+                    .map_err(|e| e.to_string())?;
+                chart
+                    .draw_series(std::iter::once(Circle::new(start, 4, color.filled())))
+                    .map_err(|e| e.to_string())?;
+                let goal = (e.goal_latent[0], e.goal_latent[1]);
+                chart
+                    .draw_series(std::iter::once(Cross::new(goal, 7, color.stroke_width(3))))
+                    .map_err(|e| e.to_string())?;
+            }
+        }
+        Ok(())
+    })
+}
+
+/// An animated GIF of an episode (every `stride`th frame, upscaled `scale` times) beside the
+/// goal image.
+pub fn save_episode_gif(
+    path: &Path,
+    episode: &EpisodeRecord,
+    stride: usize,
+    scale: usize,
+) -> Result<()> {
+    let side = crate::envs::FRAME_PX * scale;
+    let (width, height) = (2 * side + scale * 2, side);
+    let mut bytes = Vec::new();
+    {
+        let mut encoder = gif::Encoder::new(&mut bytes, width as u16, height as u16, &[])
+            .map_err(|e| image_error(path, e))?;
+        encoder
+            .set_repeat(gif::Repeat::Infinite)
+            .map_err(|e| image_error(path, e))?;
+        for frame in episode.frames.iter().step_by(stride.max(1)) {
+            let mut canvas = RgbImage::new(width, height);
+            canvas.pixels.fill(255);
+            canvas.blit_scaled(frame, crate::envs::FRAME_PX, 0, 0, scale);
+            if let Some(goal) = &episode.goal_frame {
+                canvas.blit_scaled(goal, crate::envs::FRAME_PX, side + 2 * scale, 0, scale);
+            }
+            let mut gif_frame =
+                gif::Frame::from_rgb_speed(width as u16, height as u16, &canvas.pixels, 10);
+            gif_frame.delay = 4; // hundredths of a second
+            encoder
+                .write_frame(&gif_frame)
+                .map_err(|e| image_error(path, e))?;
+        }
+    }
+    crate::write_atomically(path, true, |w| {
+        std::io::Write::write_all(w, &bytes).map_err(|e| Error::io(path, e))
+    })
+}

@@ -1,0 +1,228 @@
+//! Goal reaching: seeded start/goal pairs, a fixed horizon, per-step distance to the goal in the
+//! true configuration space, success rate and control time.
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use crate::control::Policy;
+use crate::envs::{EnvKind, FRAME_BYTES, Frame, State};
+
+/// The protocol's settings for one environment.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReachConfig {
+    pub episodes: usize,
+    /// Seed of the start/goal pairs (episode k uses ChaCha8 stream k).
+    pub seed: u64,
+    /// Control steps per episode, long enough for the oracle PD to converge.
+    pub horizon: usize,
+    /// An episode succeeds when its final distance is below this (units of `distance_unit`).
+    pub success_threshold: f64,
+    /// What distances measure.
+    pub distance_unit: String,
+}
+
+impl ReachConfig {
+    /// spec.md 4 / issue 9: 50 episodes of 500 steps (10 s); point mass succeeds below 0.02 m,
+    /// reacher below 0.1 rad of joint-space distance.
+    pub fn for_env(env: EnvKind, seed: u64) -> Self {
+        match env {
+            EnvKind::PointMass => Self {
+                episodes: 50,
+                seed,
+                horizon: 500,
+                success_threshold: 0.02,
+                distance_unit: "m".into(),
+            },
+            EnvKind::Reacher => Self {
+                episodes: 50,
+                seed,
+                horizon: 500,
+                success_threshold: 0.1,
+                distance_unit: "rad (joint space)".into(),
+            },
+        }
+    }
+}
+
+/// Start and goal states of every episode (both at rest, uniform over the configuration space).
+pub fn reach_tasks(env: EnvKind, config: &ReachConfig) -> Vec<(State, State)> {
+    let sim = env.make();
+    (0..config.episodes)
+        .map(|k| {
+            let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+            rng.set_stream(k as u64);
+            let start = sim.sample_config(&mut rng);
+            let goal = sim.sample_config(&mut rng);
+            let at_rest = |q: Vec<f64>| State {
+                qd: vec![0.0; q.len()],
+                q,
+            };
+            (at_rest(start), at_rest(goal))
+        })
+        .collect()
+}
+
+/// What one closed-loop episode did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct EpisodeRecord {
+    /// Distance to the goal configuration before each step and after the last (`horizon + 1`).
+    pub distances: Vec<f64>,
+    /// Latent `h` at each step (empty for the oracle).
+    pub latents: Vec<Vec<f64>>,
+    pub goal_latent: Vec<f64>,
+    /// Frames, when recorded (for the GIF), and the goal image.
+    #[serde(skip)]
+    pub frames: Vec<Frame>,
+    #[serde(skip)]
+    pub goal_frame: Option<Frame>,
+}
+
+/// Runs `policy` from `start` toward `goal` for `horizon` steps.
+pub fn run_episode(
+    env: EnvKind,
+    policy: &mut dyn Policy,
+    start: &State,
+    goal: &State,
+    horizon: usize,
+    record_frames: bool,
+) -> crate::Result<EpisodeRecord> {
+    let mut sim = env.make();
+    let mut goal_frame = [0u8; FRAME_BYTES];
+    sim.set_state(goal)?;
+    sim.render(&mut goal_frame);
+    sim.set_state(start)?;
+    let mut frame = [0u8; FRAME_BYTES];
+    sim.render(&mut frame);
+    let mut record = EpisodeRecord {
+        goal_frame: record_frames.then_some(goal_frame),
+        ..Default::default()
+    };
+    let mut u = vec![0.0; sim.action_dim()];
+    let mut state = sim.state();
+    policy.reset(&goal_frame, &frame, &state);
+    record.goal_latent = policy.goal_latent();
+    for step in 0..=horizon {
+        record
+            .distances
+            .push(sim.config_distance(&state.q, &goal.q));
+        if record_frames {
+            record.frames.push(frame);
+        }
+        if step == horizon {
+            break;
+        }
+        policy.act(&frame, &state, &mut u);
+        let h = policy.latent();
+        if !h.is_empty() {
+            record.latents.push(h);
+        }
+        sim.step(&u);
+        sim.render(&mut frame);
+        state = sim.state();
+    }
+    Ok(record)
+}
+
+/// Aggregate results of one method over all episodes.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MethodSummary {
+    pub method: String,
+    pub per_step_mean: Vec<f64>,
+    pub per_step_std: Vec<f64>,
+    pub final_distances: Vec<f64>,
+    pub final_mean: f64,
+    pub final_std: f64,
+    pub success_rate: f64,
+    /// Control time per step (encode one frame + PD), microseconds; absent for the oracle.
+    pub control_time_us_p50: Option<f64>,
+    pub control_time_us_p99: Option<f64>,
+}
+
+/// The `eval.json` document.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReachReport {
+    pub env: EnvKind,
+    pub protocol: ReachConfig,
+    pub methods: Vec<MethodSummary>,
+}
+
+fn mean_std(xs: &[f64]) -> (f64, f64) {
+    let n = xs.len().max(1) as f64;
+    let mean = xs.iter().sum::<f64>() / n;
+    let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
+    (mean, var.sqrt())
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let idx = ((sorted.len() - 1) as f64 * p).round() as usize;
+    sorted[idx]
+}
+
+/// Summarises episodes (and, for latent policies, their control times in seconds).
+pub fn summarise(
+    method: &str,
+    episodes: &[EpisodeRecord],
+    config: &ReachConfig,
+    control_times_s: &[f64],
+) -> MethodSummary {
+    let steps = episodes.first().map_or(0, |e| e.distances.len());
+    let (mut per_step_mean, mut per_step_std) = (vec![], vec![]);
+    for t in 0..steps {
+        let column: Vec<f64> = episodes.iter().map(|e| e.distances[t]).collect();
+        let (m, s) = mean_std(&column);
+        per_step_mean.push(m);
+        per_step_std.push(s);
+    }
+    let finals: Vec<f64> = episodes
+        .iter()
+        .filter_map(|e| e.distances.last().copied())
+        .collect();
+    let (final_mean, final_std) = mean_std(&finals);
+    let successes = finals
+        .iter()
+        .filter(|&&d| d < config.success_threshold)
+        .count();
+    let mut times: Vec<f64> = control_times_s.iter().map(|t| t * 1e6).collect();
+    times.sort_by(f64::total_cmp);
+    let timed = !times.is_empty();
+    MethodSummary {
+        method: method.to_string(),
+        per_step_mean,
+        per_step_std,
+        final_distances: finals.clone(),
+        final_mean,
+        final_std,
+        success_rate: successes as f64 / finals.len().max(1) as f64,
+        control_time_us_p50: timed.then(|| percentile(&times, 0.5)),
+        control_time_us_p99: timed.then(|| percentile(&times, 0.99)),
+    }
+}
+
+/// Runs every task with a fresh policy from `make_policy(goal)`; returns the records and the
+/// control times the policies reported through `times`.
+pub fn evaluate_reach(
+    env: EnvKind,
+    config: &ReachConfig,
+    mut make_policy: impl FnMut(&State) -> Box<dyn Policy>,
+    record_first: bool,
+    mut progress: impl FnMut(usize),
+) -> crate::Result<Vec<EpisodeRecord>> {
+    let tasks = reach_tasks(env, config);
+    let mut records = Vec::with_capacity(tasks.len());
+    for (k, (start, goal)) in tasks.iter().enumerate() {
+        let mut policy = make_policy(goal);
+        records.push(run_episode(
+            env,
+            policy.as_mut(),
+            start,
+            goal,
+            config.horizon,
+            record_first && k == 0,
+        )?);
+        progress(k + 1);
+    }
+    Ok(records)
+}

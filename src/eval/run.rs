@@ -1,0 +1,111 @@
+//! Evaluating a trained run folder: latent PD and the oracle on the same tasks, written as
+//! `eval.json`, `reach.png`, `latent_traj.png` and `episode.gif` beside the weights.
+
+use std::path::PathBuf;
+
+use super::plots::{save_episode_gif, save_latent_plot, save_reach_plot};
+use super::reach::{MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise};
+use crate::control::{LatentPdPolicy, OraclePdPolicy, PdController, Policy, oracle_gains};
+use crate::error::{Error, Result};
+use crate::model::cpu_device;
+use crate::train::{Method, RunPaths};
+
+/// Output files of an evaluation.
+pub struct EvalOutputs {
+    pub json: PathBuf,
+    pub reach_png: PathBuf,
+    pub latent_png: PathBuf,
+    pub gif: PathBuf,
+}
+
+impl EvalOutputs {
+    pub fn in_run(run: &RunPaths) -> Self {
+        Self {
+            json: run.dir.join("eval.json"),
+            reach_png: run.dir.join("reach.png"),
+            latent_png: run.dir.join("latent_traj.png"),
+            gif: run.dir.join("episode.gif"),
+        }
+    }
+}
+
+/// Evaluates the oracle PD on the true state for `protocol`.
+pub fn evaluate_oracle(env: crate::envs::EnvKind, protocol: &ReachConfig) -> Result<MethodSummary> {
+    let gains = oracle_gains(env);
+    let records = evaluate_reach(
+        env,
+        protocol,
+        |goal| Box::new(OraclePdPolicy::new(gains, goal.q.clone())),
+        false,
+        |_| {},
+    )?;
+    Ok(summarise("oracle PD (true state)", &records, protocol, &[]))
+}
+
+/// Runs latent PD with the run's gains (its `config.json`) and the oracle on the same tasks,
+/// and writes the outputs into the run folder.
+pub fn evaluate_run(
+    run: &RunPaths,
+    protocol: &ReachConfig,
+    mut progress: impl FnMut(usize),
+) -> Result<ReachReport> {
+    let device = cpu_device();
+    let (config, model) = run.load_model(&device)?;
+    let env = config.env;
+    let pd = PdController {
+        kp: config.loss.kp,
+        kd: config.loss.kd,
+    };
+    let dt = env.make().control_dt_s();
+    let mut policy = LatentPdPolicy::new(model.encoder, device, pd, dt);
+    let mut times = vec![];
+    let mut records = vec![];
+    // One policy is reused across episodes (reset per episode), so the encoder is loaded once.
+    for (k, (start, goal)) in super::reach::reach_tasks(env, protocol).iter().enumerate() {
+        records.push(super::reach::run_episode(
+            env,
+            &mut policy as &mut dyn Policy,
+            start,
+            goal,
+            protocol.horizon,
+            k == 0,
+        )?);
+        times.append(&mut policy.control_times_s);
+        progress(k + 1);
+    }
+    let label = match config.method {
+        Method::Procl => "ProCL + PD",
+        Method::Pc3 => "PC3 + PD",
+    };
+    let latent = summarise(label, &records, protocol, &times);
+    let oracle = evaluate_oracle(env, protocol)?;
+    let report = ReachReport {
+        env,
+        protocol: protocol.clone(),
+        methods: vec![latent, oracle],
+    };
+    let out = EvalOutputs::in_run(run);
+    let json =
+        serde_json::to_string_pretty(&report).map_err(|e| Error::config("eval", e.to_string()))?;
+    crate::write_atomically(&out.json, true, |w| {
+        std::io::Write::write_all(w, json.as_bytes()).map_err(|e| Error::io(&out.json, e))
+    })?;
+    let title = format!("{env}: goal reaching over {} episodes", protocol.episodes);
+    save_reach_plot(
+        &out.reach_png,
+        &title,
+        &report.methods,
+        protocol.success_threshold,
+        &protocol.distance_unit,
+    )?;
+    save_latent_plot(
+        &out.latent_png,
+        &format!("{label}: latent trajectories ({env})"),
+        &records,
+        8,
+    )?;
+    if let Some(first) = records.first() {
+        save_episode_gif(&out.gif, first, 5, 3)?;
+    }
+    Ok(report)
+}

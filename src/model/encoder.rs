@@ -1,0 +1,151 @@
+//! Encoder `e`: one 64x64 RGB frame -> configuration latent `h` in R^du.
+
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
+use burn::tensor::activation::{relu, softmax};
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::error::{Error, Result};
+
+/// How the conv features become `h`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case", tag = "kind")]
+pub enum EncoderHead {
+    /// The PC3-style head: one more stride-2 conv, flatten, an MLP with `hidden` units.
+    Mlp { hidden: usize },
+    /// Spatial soft-argmax (Levine et al. 2016, "deep spatial autoencoders"): `keypoints`
+    /// feature maps, each reduced to its expected image coordinate, then one linear map.
+    /// `h` is then close to linear in the position of what the keypoints track.
+    SoftArgmax { keypoints: usize },
+}
+
+/// Encoder architecture. Defaults sized for 2 CPU cores (spec.md 3).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EncoderConfig {
+    /// Dimension of `h` (= action dimension du).
+    pub latent_dim: usize,
+    /// Channels of the two stride-2 trunk convs (64 -> 32 -> 16 pixels).
+    pub trunk_channels: [usize; 2],
+    /// The head.
+    pub head: EncoderHead,
+}
+
+impl EncoderConfig {
+    /// Default encoder for `h` in R^du: soft-argmax head with 16 keypoints.
+    pub fn new(latent_dim: usize) -> Self {
+        Self {
+            latent_dim,
+            trunk_channels: [16, 32],
+            head: EncoderHead::SoftArgmax { keypoints: 16 },
+        }
+    }
+
+    pub(crate) fn validate(&self) -> Result<()> {
+        if self.latent_dim == 0 || self.trunk_channels.contains(&0) {
+            return Err(Error::config(
+                "model.encoder",
+                "latent_dim and trunk_channels must be positive",
+            ));
+        }
+        match self.head {
+            EncoderHead::Mlp { hidden: 0 } | EncoderHead::SoftArgmax { keypoints: 0 } => {
+                Err(Error::config("model.encoder.head", "size must be positive"))
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Builds the encoder (weights are redrawn by [`super::reinit_params`]).
+    pub fn init(&self, device: &Device) -> Encoder {
+        let [c1, c2] = self.trunk_channels;
+        let conv = |cin, cout, k, stride, pad| {
+            Conv2dConfig::new([cin, cout], [k, k])
+                .with_stride([stride, stride])
+                .with_padding(PaddingConfig2d::Explicit(pad, pad, pad, pad))
+                .init(device)
+        };
+        let (mlp, keypoints) = match self.head {
+            EncoderHead::Mlp { hidden } => (
+                Some(MlpHead {
+                    conv3: conv(c2, 32, 4, 2, 1),
+                    fc1: LinearConfig::new(32 * 8 * 8, hidden).init(device),
+                    fc2: LinearConfig::new(hidden, self.latent_dim).init(device),
+                }),
+                None,
+            ),
+            EncoderHead::SoftArgmax { keypoints } => (
+                None,
+                Some(KeypointHead {
+                    features: conv(c2, keypoints, 1, 1, 0),
+                    out: LinearConfig::new(2 * keypoints, self.latent_dim).init(device),
+                }),
+            ),
+        };
+        Encoder {
+            conv1: conv(3, c1, 4, 2, 1),
+            conv2: conv(c1, c2, 3, 2, 1),
+            mlp,
+            keypoints,
+        }
+    }
+}
+
+/// PC3-style flatten + MLP head.
+#[derive(Module, Debug)]
+pub struct MlpHead {
+    conv3: Conv2d,
+    fc1: Linear,
+    fc2: Linear,
+}
+
+/// Spatial soft-argmax head.
+#[derive(Module, Debug)]
+pub struct KeypointHead {
+    features: Conv2d,
+    out: Linear,
+}
+
+/// The encoder `e`. Exactly one of the heads is present.
+#[derive(Module, Debug)]
+pub struct Encoder {
+    conv1: Conv2d,
+    conv2: Conv2d,
+    mlp: Option<MlpHead>,
+    keypoints: Option<KeypointHead>,
+}
+
+impl Encoder {
+    /// `frames [n, 3, 64, 64]` (from [`super::frames_to_tensor`]) -> `h [n, du]`.
+    pub fn forward(&self, frames: Tensor<4>) -> Tensor<2> {
+        let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
+        let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16]
+        if let Some(head) = &self.mlp {
+            let x = relu(head.conv3.forward(x)); // [n, 32, 8, 8]
+            let n = x.dims()[0];
+            let x = relu(head.fc1.forward(x.reshape([n, 32 * 8 * 8]))); // [n, hidden]
+            return head.fc2.forward(x); // [n, du]
+        }
+        let head = self
+            .keypoints
+            .as_ref()
+            .expect("encoder has one head by construction");
+        let maps = head.features.forward(x); // [n, K, 16, 16]
+        let [n, k, rows, cols] = maps.dims();
+        let attention = softmax(maps.reshape([n, k, rows * cols]), 2); // [n, K, 256]
+        let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
+        let expected_x = (attention.clone() * grid_x).sum_dim(2); // [n, K, 1]
+        let expected_y = (attention * grid_y).sum_dim(2); // [n, K, 1]
+        let keypoints = Tensor::cat(vec![expected_x, expected_y], 1).reshape([n, 2 * k]); // [n, 2K]
+        head.out.forward(keypoints) // [n, du]
+    }
+}
+
+/// Column and row coordinates of each cell, in [-1, 1], shaped `[1, 1, rows * cols]`.
+fn pixel_grid(rows: usize, cols: usize, device: &Device) -> (Tensor<3>, Tensor<3>) {
+    let coord = |i: usize, n: usize| (2.0 * i as f32 + 1.0) / n as f32 - 1.0;
+    let xs: Vec<f32> = (0..rows * cols).map(|p| coord(p % cols, cols)).collect();
+    let ys: Vec<f32> = (0..rows * cols).map(|p| coord(p / cols, rows)).collect();
+    let make = |v| Tensor::from_data(TensorData::new(v, [1, 1, rows * cols]), device);
+    (make(xs), make(ys))
+}

@@ -1,0 +1,124 @@
+//! The ProCL networks: encoder `e` (one frame -> `h`), latent `z = (h, v)`, dynamics `g`.
+//!
+//! Tensors live on a runtime-selected burn [`Device`]: [`cpu_device`] (burn-flex, pure Rust)
+//! for tests and CI, `Device::cuda(0)` with the `cuda` feature. The code never names a backend.
+
+mod dynamics;
+mod encoder;
+mod init;
+
+pub use dynamics::{Dynamics, DynamicsConfig, Transition};
+pub use encoder::{Encoder, EncoderConfig, EncoderHead};
+pub use init::reinit_params;
+
+use burn::module::Module;
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::envs::{FRAME_BYTES, FRAME_PX};
+
+/// The CPU device every test and CI run uses (burn-flex, deterministic, no native libraries).
+pub fn cpu_device() -> Device {
+    Device::flex()
+}
+
+/// Picks a device by name: `cpu`, or `cuda` when built with the `cuda` feature.
+pub fn device_by_name(name: &str) -> crate::Result<Device> {
+    match name {
+        "cpu" => Ok(cpu_device()),
+        #[cfg(feature = "cuda")]
+        "cuda" => Ok(Device::cuda(0)),
+        other => Err(crate::Error::config(
+            "device",
+            format!(
+                "unknown device `{other}` (available: cpu{})",
+                if cfg!(feature = "cuda") {
+                    ", cuda"
+                } else {
+                    "; build with --features cuda for cuda"
+                }
+            ),
+        )),
+    }
+}
+
+/// Converts RGB u8 frames to the network input `[n, 3, 64, 64]`, scaled to [-0.5, 0.5].
+/// This is the only place pixels are normalised.
+pub fn frames_to_tensor<'a>(
+    frames: impl ExactSizeIterator<Item = &'a [u8]>,
+    device: &Device,
+) -> Tensor<4> {
+    let n = frames.len();
+    let plane = FRAME_PX * FRAME_PX;
+    let mut data = vec![0f32; n * FRAME_BYTES];
+    for (k, frame) in frames.enumerate() {
+        let out = &mut data[k * FRAME_BYTES..(k + 1) * FRAME_BYTES];
+        for (p, rgb) in frame.chunks_exact(3).enumerate() {
+            for c in 0..3 {
+                out[c * plane + p] = rgb[c] as f32 / 255.0 - 0.5;
+            }
+        }
+    }
+    Tensor::from_data(TensorData::new(data, [n, 3, FRAME_PX, FRAME_PX]), device)
+}
+
+/// The whole ProCL model: encoder and latent dynamics, trained jointly.
+#[derive(Module, Debug)]
+pub struct ProclModel {
+    pub encoder: Encoder,
+    pub dynamics: Dynamics,
+}
+
+/// Architecture of a [`ProclModel`]; stored in the run's `config.json`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ModelConfig {
+    pub encoder: EncoderConfig,
+    pub dynamics: DynamicsConfig,
+}
+
+impl ModelConfig {
+    /// Defaults for an environment with `du` action dimensions (`h` has `du` dimensions too).
+    pub fn for_action_dim(du: usize) -> Self {
+        Self {
+            encoder: EncoderConfig::new(du),
+            dynamics: DynamicsConfig::new(du),
+        }
+    }
+
+    /// Builds the model with weights drawn from `seed` (same seed, same weights).
+    pub fn init(&self, seed: u64, device: &Device) -> crate::Result<ProclModel> {
+        self.validate()?;
+        let model = ProclModel {
+            encoder: self.encoder.init(device),
+            dynamics: self.dynamics.init(device),
+        };
+        Ok(reinit_params(model, seed))
+    }
+
+    /// Checks sizes before anything is built.
+    pub fn validate(&self) -> crate::Result<()> {
+        self.encoder.validate()?;
+        self.dynamics.validate()?;
+        if self.encoder.latent_dim != self.dynamics.latent_dim {
+            return Err(crate::Error::config(
+                "model.dynamics.latent_dim",
+                "must equal model.encoder.latent_dim",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Marks a freshly built parameter tensor as trainable when it lives on an autodiff device
+/// (inference devices have no autodiff and need no gradients).
+pub(crate) fn trainable<const D: usize>(tensor: Tensor<D>) -> Tensor<D> {
+    if tensor.is_autodiff() {
+        tensor.require_grad()
+    } else {
+        tensor
+    }
+}
+
+/// Reads a float tensor back as a flat `Vec<f32>`, row-major.
+pub fn to_vec<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
+    tensor.into_data().iter::<f32>().collect()
+}

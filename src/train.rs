@@ -1,0 +1,430 @@
+//! The training loop: one explicit function, seeded batches, per-term metrics, atomic
+//! checkpoints, `--resume`, and a clean stop on a non-finite loss.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::seq::SliceRandom;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::checkpoint::{Adam, CheckpointMeta, load_checkpoint, save_checkpoint};
+use crate::data::Dataset;
+use crate::envs::EnvKind;
+use crate::error::{Error, Result};
+use crate::losses::{LOSS_NAMES, LossConfig, LossInputs, LossValues, NoiseMode, procl_loss};
+use crate::model::{EncoderHead, ModelConfig, ProclModel, frames_to_tensor};
+
+/// Which objective to train.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// PC3 losses plus the latent PD-control Lyapunov risk.
+    Procl,
+    /// PC3 alone: the same networks with `lambda_R = 0`.
+    Pc3,
+}
+
+impl std::str::FromStr for Method {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "procl" => Ok(Method::Procl),
+            "pc3" => Ok(Method::Pc3),
+            other => Err(Error::config(
+                "method",
+                format!("unknown method `{other}` (expected procl or pc3)"),
+            )),
+        }
+    }
+}
+
+/// Named starting points for a configuration (issue 9).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Preset {
+    /// spec.md sections 3-4 literally: PC3-style MLP encoder head, noise as in the paper.
+    Paper,
+    /// procl's default: the best design found (docs/method.md).
+    Procl,
+}
+
+/// Everything a training run needs; written to the run folder as `config.json`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    pub preset: Preset,
+    pub method: Method,
+    /// Environment the model is for (checked against the dataset).
+    pub env: EnvKind,
+    /// Seed of weights, batches and noise.
+    pub seed: u64,
+    /// Optimiser steps.
+    pub steps: u64,
+    /// Samples per batch (`K` of the CPC loss).
+    pub batch_size: usize,
+    /// Adam learning rate.
+    pub learning_rate: f64,
+    /// Save a checkpoint every this many steps (and at the end).
+    pub checkpoint_every: u64,
+    pub loss: LossConfig,
+    pub model: ModelConfig,
+}
+
+impl TrainConfig {
+    /// The configuration of `preset` for `method` on `env`.
+    pub fn preset(preset: Preset, method: Method, env: EnvKind) -> Self {
+        let du = env.make().action_dim();
+        let mut config = Self {
+            preset,
+            method,
+            env,
+            seed: 0,
+            steps: 3000,
+            batch_size: 128,
+            learning_rate: 1e-3,
+            checkpoint_every: 500,
+            loss: LossConfig::default(),
+            model: ModelConfig::for_action_dim(du),
+        };
+        match preset {
+            Preset::Paper => {
+                config.model.encoder.head = EncoderHead::Mlp { hidden: 256 };
+            }
+            Preset::Procl => {
+                config.loss.noise_mode = NoiseMode::CleanRisk;
+            }
+        }
+        if method == Method::Pc3 {
+            config.loss.lambda_r = 0.0;
+        }
+        config
+    }
+
+    /// Rejects invalid values with the field's name.
+    pub fn validate(&self) -> Result<()> {
+        if self.steps == 0 {
+            return Err(Error::config("steps", "must be at least 1"));
+        }
+        if self.batch_size < 2 {
+            return Err(Error::config(
+                "batch_size",
+                format!(
+                    "{} must be at least 2 (CPC needs negatives)",
+                    self.batch_size
+                ),
+            ));
+        }
+        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
+            return Err(Error::config(
+                "learning_rate",
+                format!("{} must be > 0", self.learning_rate),
+            ));
+        }
+        if self.checkpoint_every == 0 {
+            return Err(Error::config("checkpoint_every", "must be at least 1"));
+        }
+        if self.method == Method::Pc3 && self.loss.lambda_r != 0.0 {
+            return Err(Error::config("loss.lambda_r", "must be 0 for method pc3"));
+        }
+        let du = self.env.make().action_dim();
+        if self.model.encoder.latent_dim != du {
+            return Err(Error::config(
+                "model.encoder.latent_dim",
+                format!("must equal the action dimension {du} of {}", self.env),
+            ));
+        }
+        self.loss.validate()?;
+        self.model.validate()
+    }
+}
+
+/// Files of a run folder.
+pub struct RunPaths {
+    pub dir: PathBuf,
+}
+
+impl RunPaths {
+    pub fn new(dir: impl Into<PathBuf>) -> Self {
+        Self { dir: dir.into() }
+    }
+    pub fn config(&self) -> PathBuf {
+        self.dir.join("config.json")
+    }
+    pub fn checkpoint(&self) -> PathBuf {
+        self.dir.join("model.safetensors")
+    }
+    pub fn metrics(&self) -> PathBuf {
+        self.dir.join("metrics.csv")
+    }
+
+    /// Reads the resolved config of a finished or running run.
+    pub fn load_config(&self) -> Result<TrainConfig> {
+        let path = self.config();
+        let text = std::fs::read_to_string(&path).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => Error::config(
+                "run",
+                format!(
+                    "{} not found: is {} a training run?",
+                    path.display(),
+                    self.dir.display()
+                ),
+            ),
+            _ => Error::io(&path, e),
+        })?;
+        serde_json::from_str(&text)
+            .map_err(|e| Error::config("run", format!("{}: {e}", path.display())))
+    }
+
+    /// Rebuilds the trained model from `config.json` and the checkpoint.
+    pub fn load_model(&self, device: &Device) -> Result<(TrainConfig, ProclModel)> {
+        let config = self.load_config()?;
+        let model = config.model.init(config.seed, device)?;
+        let (model, _, _) = load_checkpoint(&self.checkpoint(), model, device)?;
+        Ok((config, model))
+    }
+}
+
+/// A training sample `(i_{t-1}, i_t, u_t, i_{t+1})` is addressed by (episode, t), 1 <= t < T.
+fn sample_batch(data: &Dataset, rng: &mut ChaCha8Rng, n: usize) -> Vec<(usize, usize)> {
+    (0..n)
+        .map(|_| {
+            (
+                rng.random_range(0..data.episodes()),
+                rng.random_range(1..data.steps()),
+            )
+        })
+        .collect()
+}
+
+/// `[n, d]` standard normal draws from `rng` (Box-Muller; deterministic for a seed).
+fn normal_tensor(rng: &mut ChaCha8Rng, n: usize, d: usize, device: &Device) -> Tensor<2> {
+    let values: Vec<f32> = (0..n * d)
+        .map(|_| {
+            let u1: f64 = rng.random_range(f64::EPSILON..1.0);
+            let u2: f64 = rng.random_range(0.0..1.0);
+            ((-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()) as f32
+        })
+        .collect();
+    Tensor::from_data(TensorData::new(values, [n, d]), device)
+}
+
+/// The encodings and random draws of training step `step` (its RNG is stream `step` of the
+/// seed, so a resumed run draws exactly what the uninterrupted run would have).
+pub fn loss_inputs(
+    model: &ProclModel,
+    data: &Dataset,
+    config: &TrainConfig,
+    step: u64,
+    device: &Device,
+) -> LossInputs {
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    rng.set_stream(step + 1);
+    let n = config.batch_size;
+    let du = data.action_dim();
+    let batch = sample_batch(data, &mut rng, n);
+    let frames = batch
+        .iter()
+        .map(|&(e, t)| data.frame(e, t - 1))
+        .chain(batch.iter().map(|&(e, t)| data.frame(e, t)))
+        .chain(batch.iter().map(|&(e, t)| data.frame(e, t + 1)));
+    let frames: Vec<&[u8]> = frames.collect();
+    let h = model
+        .encoder
+        .forward(frames_to_tensor(frames.into_iter(), device)); // [3n, du]
+    let actions: Vec<f32> = batch
+        .iter()
+        .flat_map(|&(e, t)| (0..du).map(move |i| (e, t, i)))
+        .map(|(e, t, i)| data.actions[[e, t, i]])
+        .collect();
+    let mut permutation: Vec<usize> = (0..n).collect();
+    permutation.shuffle(&mut rng);
+    LossInputs {
+        h_prev: h.clone().narrow(0, 0, n),
+        h_now: h.clone().narrow(0, n, n),
+        h_next: h.narrow(0, 2 * n, n),
+        u: Tensor::from_data(TensorData::new(actions, [n, du]), device),
+        latent_noise: normal_tensor(&mut rng, n, du, device),
+        curvature_noise: (
+            normal_tensor(&mut rng, n, du, device),
+            normal_tensor(&mut rng, n, du, device),
+            normal_tensor(&mut rng, n, du, device),
+        ),
+        permutation,
+    }
+}
+
+/// How a run ended.
+#[derive(Debug, Clone)]
+pub struct TrainSummary {
+    pub steps_done: u64,
+    pub last: Option<LossValues>,
+    pub seconds: f64,
+}
+
+/// Trains `config` on `data` into the run folder `run`. With `resume`, continues from the
+/// folder's checkpoint (same config required). `progress(step, values)` is called every step.
+pub fn train(
+    config: &TrainConfig,
+    data: &Dataset,
+    run: &RunPaths,
+    resume: bool,
+    device: &Device,
+    mut progress: impl FnMut(u64, &LossValues),
+) -> Result<TrainSummary> {
+    config.validate()?;
+    if data.meta.env != config.env {
+        return Err(Error::config(
+            "env",
+            format!(
+                "the dataset is from {}, the config is for {}",
+                data.meta.env, config.env
+            ),
+        ));
+    }
+    let device = &device.clone().autodiff();
+    let mut model = config.model.init(config.seed, device)?;
+    let mut adam = Adam::default();
+    let mut start = 0;
+    std::fs::create_dir_all(&run.dir).map_err(|e| Error::io(&run.dir, e))?;
+    if resume {
+        let saved = run.load_config()?;
+        if &saved != config {
+            return Err(Error::config(
+                "resume",
+                format!(
+                    "{} differs from this run's configuration",
+                    run.config().display()
+                ),
+            ));
+        }
+        let (m, a, meta) = load_checkpoint(&run.checkpoint(), model, device)?;
+        (model, adam, start) = (m, a, meta.step);
+    } else {
+        if run.checkpoint().exists() {
+            return Err(Error::WouldClobber(run.checkpoint()));
+        }
+        let json = serde_json::to_string_pretty(config)
+            .map_err(|e| Error::config("config", e.to_string()))?;
+        crate::write_atomically(&run.config(), true, |w| {
+            w.write_all(json.as_bytes())
+                .map_err(|e| Error::io(run.config(), e))
+        })?;
+        let header = format!("step,{},seconds\n", LOSS_NAMES.join(","));
+        std::fs::write(run.metrics(), header).map_err(|e| Error::io(run.metrics(), e))?;
+    }
+    let mut metrics = std::fs::OpenOptions::new()
+        .append(true)
+        .open(run.metrics())
+        .map_err(|e| Error::io(run.metrics(), e))?;
+    let dt = data.meta.control_dt_s;
+    let clock = Instant::now();
+    let mut last = None;
+    for step in start..config.steps {
+        let inputs = loss_inputs(&model, data, config, step, device);
+        let terms = procl_loss(&config.loss, &model.dynamics, inputs, dt);
+        let values = terms.values();
+        if !values.is_finite() {
+            return Err(Error::Diverged(format!(
+                "non-finite loss at step {step} ({values:?}); the last good checkpoint (step {}) is kept in {}",
+                (step / config.checkpoint_every) * config.checkpoint_every,
+                run.checkpoint().display()
+            )));
+        }
+        let grads = terms.total.backward();
+        model = adam.step(config.learning_rate, model, &grads);
+        let row: Vec<String> = values
+            .as_array()
+            .iter()
+            .map(|x| format!("{x:.6}"))
+            .collect();
+        writeln!(
+            metrics,
+            "{},{},{:.3}",
+            step + 1,
+            row.join(","),
+            clock.elapsed().as_secs_f64()
+        )
+        .map_err(|e| Error::io(run.metrics(), e))?;
+        progress(step + 1, &values);
+        last = Some(values);
+        if (step + 1) % config.checkpoint_every == 0 || step + 1 == config.steps {
+            save_checkpoint(
+                &run.checkpoint(),
+                &model,
+                Some(&adam),
+                &CheckpointMeta { step: step + 1 },
+            )?;
+        }
+    }
+    Ok(TrainSummary {
+        steps_done: config.steps,
+        last,
+        seconds: clock.elapsed().as_secs_f64(),
+    })
+}
+
+/// Reads a TOML config file over a preset: `preset`/`method` keys pick the base, every other
+/// key overrides it.
+pub fn config_from_toml(path: &Path, env: EnvKind, method: Option<Method>) -> Result<TrainConfig> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let table: toml::Table = text.parse().map_err(|e: toml::de::Error| {
+        Error::config(path.display().to_string(), e.message().to_string())
+    })?;
+    config_from_table(table, env, method).map_err(|e| match e {
+        Error::InvalidConfig { field, message } => {
+            Error::config(format!("{}: {field}", path.display()), message)
+        }
+        other => other,
+    })
+}
+
+/// [`config_from_toml`] on an already parsed table.
+pub fn config_from_table(
+    table: toml::Table,
+    env: EnvKind,
+    method: Option<Method>,
+) -> Result<TrainConfig> {
+    let preset: Preset = match table.get("preset") {
+        Some(v) => v.clone().try_into().map_err(|_| {
+            Error::config(
+                "preset",
+                format!("unknown preset {v} (expected paper or procl)"),
+            )
+        })?,
+        None => Preset::Procl,
+    };
+    let method = match (method, table.get("method")) {
+        (Some(m), _) => m,
+        (None, Some(v)) => v.as_str().unwrap_or("").parse()?,
+        (None, None) => Method::Procl,
+    };
+    let base = TrainConfig::preset(preset, method, env);
+    let mut merged =
+        toml::Table::try_from(&base).map_err(|e| Error::config("config", e.to_string()))?;
+    merge(&mut merged, table);
+    merged.insert(
+        "method".into(),
+        toml::Value::try_from(method).map_err(|e| Error::config("method", e.to_string()))?,
+    );
+    merged.insert("env".into(), toml::Value::String(env.name().into()));
+    let config: TrainConfig = toml::Value::Table(merged)
+        .try_into()
+        .map_err(|e: toml::de::Error| Error::config("config", e.message().to_string()))?;
+    config.validate()?;
+    Ok(config)
+}
+
+/// Deep-merges `over` into `base` (tables recursively, other values replaced).
+fn merge(base: &mut toml::Table, over: toml::Table) {
+    for (key, value) in over {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o),
+            (_, value) => {
+                base.insert(key, value);
+            }
+        }
+    }
+}
