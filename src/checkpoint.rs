@@ -141,12 +141,12 @@ impl ModuleMapper for Restore<'_> {
         match self.stored.get(&key) {
             Some((shape, values)) if shape.as_slice() == dims.as_slice() => {
                 let values = values.clone();
+                // Keep each parameter's own trainability: the orientation is never trained.
                 param.map(|tensor| {
                     let device = tensor.device();
-                    crate::model::trainable(Tensor::from_data(
-                        TensorData::new(values, dims),
-                        &device,
-                    ))
+                    let require_grad = tensor.is_require_grad();
+                    Tensor::from_data(TensorData::new(values, dims), &device)
+                        .set_require_grad(require_grad)
                 })
             }
             found => {
@@ -164,6 +164,14 @@ impl ModuleMapper for Restore<'_> {
             }
         }
     }
+}
+
+/// The checkpoint's metadata as stored: [`CheckpointMeta`] and the Adam step count.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct StoredMeta {
+    #[serde(flatten)]
+    meta: CheckpointMeta,
+    adam_step: u64,
 }
 
 /// What a checkpoint holds besides tensors.
@@ -215,14 +223,17 @@ pub fn save_checkpoint<M: Module>(
             )
         })
         .collect();
-    let mut metadata = std::collections::HashMap::new();
-    metadata.insert(
-        "procl".to_string(),
-        serde_json::to_string(meta).unwrap_or_default(),
-    );
-    if let Some(adam) = adam {
-        metadata.insert("adam_step".to_string(), adam.step.to_string());
-    }
+    // One metadata key: safetensors writes a HashMap's keys in its randomised iteration order,
+    // and the same run must give the same bytes.
+    let stored_meta = StoredMeta {
+        meta: meta.clone(),
+        adam_step: adam.map_or(0, |a| a.step),
+    };
+    let json = serde_json::to_string(&stored_meta).map_err(|e| Error::Checkpoint {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let metadata = std::collections::HashMap::from([("procl".to_string(), json)]);
     let views: Vec<(String, TensorView<'_>)> = bytes
         .iter()
         .map(|(name, dims, data)| {
@@ -265,10 +276,11 @@ pub fn load_checkpoint<M: Module>(
     let tensors = safetensors::SafeTensors::deserialize(&bytes)
         .map_err(|e| corrupt(format!("not a readable safetensors file ({e})")))?;
     let metadata = header.metadata().clone().unwrap_or_default();
-    let meta: CheckpointMeta = metadata
+    let stored_meta: StoredMeta = metadata
         .get("procl")
         .and_then(|s| serde_json::from_str(s).ok())
         .ok_or_else(|| corrupt("missing procl metadata".into()))?;
+    let meta = stored_meta.meta.clone();
     let mut stored = BTreeMap::new();
     for (name, view) in tensors.tensors() {
         if view.dtype() != Dtype::F32 {
@@ -298,10 +310,7 @@ pub fn load_checkpoint<M: Module>(
         return Err(error);
     }
     let mut adam = Adam {
-        step: metadata
-            .get("adam_step")
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(0),
+        step: stored_meta.adam_step,
         ..Adam::default()
     };
     for (name, (shape, values)) in &stored {

@@ -7,9 +7,11 @@ mod error;
 mod fsutil;
 mod image_io;
 
+pub mod ablate;
 mod checkpoint;
 pub mod control;
 pub mod data;
+pub mod demo;
 pub mod envs;
 pub mod eval;
 pub mod losses;

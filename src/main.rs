@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use procl::data::{CollectConfig, collect};
+use procl::demo::DemoConfig;
 use procl::envs::EnvKind;
 use procl::eval::ReachConfig;
 use procl::train::{Method, RunPaths};
@@ -92,6 +93,54 @@ enum Command {
         /// Steps per episode (default: the env's protocol horizon).
         #[arg(long)]
         horizon: Option<usize>,
+    },
+    /// Latent diagnostics of a trained run: latent_map.png and the R^2 of q from h.
+    Diagnose {
+        #[arg(long)]
+        run: PathBuf,
+    },
+    /// The end-to-end demo on point mass: collect, train ProCL and PC3, evaluate, report.html.
+    Demo {
+        /// Output folder (reused stages are skipped, so an interrupted demo resumes).
+        #[arg(long, default_value = "runs/demo")]
+        out: PathBuf,
+        /// Tiny budget (seconds): the smoke test of the whole pipeline.
+        #[arg(long)]
+        quick: bool,
+        /// Training steps per method (default 600; quick: 15).
+        #[arg(long)]
+        steps: Option<u64>,
+    },
+    /// Train and evaluate every cell of an ablation grid over several seeds (resumable).
+    Ablate {
+        /// Environment (a 10k-transition dataset with seed 0 is collected into --out).
+        #[arg(long)]
+        env: String,
+        /// The grid TOML ([base] over the preset, [[cell]] with a name and overrides).
+        #[arg(long)]
+        grid: PathBuf,
+        #[arg(long, default_value_t = 3)]
+        seeds: u64,
+        /// Run only this cell of the grid (to split a grid across processes or machines).
+        #[arg(long)]
+        cell: Option<String>,
+        /// Train nothing: summarise the results already in --out/ablation.jsonl.
+        #[arg(long)]
+        report_only: bool,
+        /// First training seed (seeds are seed_start .. seed_start + seeds).
+        #[arg(long, default_value_t = 0)]
+        seed_start: u64,
+        /// Evaluation episodes per seed.
+        #[arg(long, default_value_t = 50)]
+        episodes: usize,
+        /// Override the env's protocol horizon.
+        #[arg(long)]
+        horizon: Option<usize>,
+        /// Dataset transitions (default 10,000).
+        #[arg(long, default_value_t = 10_000)]
+        transitions: usize,
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Render a strip of frames from a random episode to a PNG.
     Render {
@@ -258,6 +307,114 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             println!(
                 "wrote eval.json, reach.png, latent_traj.png, episode.gif in {}",
                 run.display()
+            );
+        }
+        Command::Diagnose { run } => {
+            let d = procl::eval::write_diagnostics(&RunPaths::new(&run))?;
+            println!("{}", serde_json::to_string_pretty(&d)?);
+        }
+        Command::Demo { out, quick, steps } => {
+            let mut config = if quick {
+                DemoConfig::quick(&out)
+            } else {
+                DemoConfig::full(&out)
+            };
+            if let Some(steps) = steps {
+                config.train_steps = steps;
+            }
+            let clock = std::time::Instant::now();
+            let result = procl::demo::run_demo(&config, |line| {
+                println!("[{:>5.0} s] {line}", clock.elapsed().as_secs_f64())
+            })?;
+            println!();
+            println!(
+                "{:<26} {:>8} {:>22} {:>18}",
+                "method", "success", "final distance (m)", "control p50 us"
+            );
+            for row in &result.rows {
+                let s = &row.summary;
+                println!(
+                    "{:<26} {:>7.0}% {:>11.4} +- {:<8.4} {:>18}",
+                    s.method,
+                    100.0 * s.success_rate,
+                    s.final_mean,
+                    s.final_std,
+                    s.control_time_us_p50
+                        .map_or("-".into(), |t| format!("{t:.0}"))
+                );
+            }
+            println!(
+                "\nreport: {} ({:.0} s in all)",
+                result.report_html.display(),
+                clock.elapsed().as_secs_f64()
+            );
+        }
+        Command::Ablate {
+            env,
+            grid,
+            cell,
+            report_only,
+            seeds,
+            seed_start,
+            episodes,
+            horizon,
+            transitions,
+            out,
+        } => {
+            let env: EnvKind = env.parse()?;
+            let mut grid = procl::ablate::Grid::from_toml(&grid)?;
+            if let Some(name) = cell {
+                grid.cells.retain(|(n, _)| n == &name);
+                if grid.cells.is_empty() {
+                    anyhow::bail!("the grid has no cell named `{name}`");
+                }
+            }
+            if seeds == 0 || episodes == 0 {
+                anyhow::bail!("--seeds and --episodes must be at least 1");
+            }
+            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+            let data_path = out.join(format!("{env}.npz"));
+            let data = if data_path.exists() {
+                procl::data::Dataset::load(&data_path)?
+            } else {
+                let config = CollectConfig {
+                    transitions,
+                    episode_len: 100.min(transitions),
+                    ..CollectConfig::new(env, 0)
+                };
+                let data = collect(&config, |_| {})?;
+                data.save(&data_path, false)?;
+                data
+            };
+            let mut protocol = ReachConfig::for_env(env, 1000);
+            protocol.episodes = episodes;
+            if let Some(h) = horizon {
+                protocol.horizon = h;
+            }
+            let results = procl::ablate::run_grid(
+                &grid,
+                &data,
+                seed_start..seed_start + seeds,
+                &protocol,
+                &out,
+                !report_only,
+                |r| {
+                    println!(
+                        "{} seed {}: success {:.0}%, final {:.4}, R^2 {:.3}, det {}, {:.0} s",
+                        r.cell,
+                        r.seed,
+                        100.0 * r.success_rate,
+                        r.final_mean,
+                        r.linear_r2,
+                        r.det.map_or("-".into(), |d| format!("{d:.2}")),
+                        r.train_seconds
+                    )
+                },
+            )?;
+            println!(
+                "{} results; wrote {}",
+                results.len(),
+                out.join("ablation.md").display()
             );
         }
         Command::Render {

@@ -69,6 +69,11 @@ pub struct TrainConfig {
     pub learning_rate: f64,
     /// Save a checkpoint every this many steps (and at the end).
     pub checkpoint_every: u64,
+    /// Every this many steps, compare the Lyapunov risk of every signed permutation of the
+    /// latent over the window and keep the lowest (0: off, the paper's training). See
+    /// [`crate::model::ProclModel::reorient_latent`]; must divide `checkpoint_every`.
+    #[serde(default)]
+    pub orientation_search_every: u64,
     pub loss: LossConfig,
     pub model: ModelConfig,
 }
@@ -86,6 +91,7 @@ impl TrainConfig {
             batch_size: 128,
             learning_rate: 1e-3,
             checkpoint_every: 500,
+            orientation_search_every: 0,
             loss: LossConfig::default(),
             model: ModelConfig::for_action_dim(du),
         };
@@ -95,6 +101,8 @@ impl TrainConfig {
             }
             Preset::Procl => {
                 config.loss.noise_mode = NoiseMode::CleanRisk;
+                config.orientation_search_every = 50;
+                config.model.encoder.keypoint_sharpness = 30.0;
             }
         }
         if method == Method::Pc3 {
@@ -125,6 +133,19 @@ impl TrainConfig {
         }
         if self.checkpoint_every == 0 {
             return Err(Error::config("checkpoint_every", "must be at least 1"));
+        }
+        if self.orientation_search_every > 0
+            && !self
+                .checkpoint_every
+                .is_multiple_of(self.orientation_search_every)
+        {
+            return Err(Error::config(
+                "orientation_search_every",
+                format!(
+                    "{} must divide checkpoint_every = {} (so a resumed run searches the same windows)",
+                    self.orientation_search_every, self.checkpoint_every
+                ),
+            ));
         }
         if self.method == Method::Pc3 && self.loss.lambda_r != 0.0 {
             return Err(Error::config("loss.lambda_r", "must be 0 for method pc3"));
@@ -256,6 +277,101 @@ pub fn loss_inputs(
     }
 }
 
+/// The Lyapunov risk of each signed permutation of the latent (2^du du! of them), summed over
+/// a window of steps on the training batches (clean encodings, detached: it only chooses, it
+/// does not train).
+pub struct OrientationSearch {
+    /// Row-major `du x du` signed permutation matrices, identity first.
+    candidates: Vec<Vec<f32>>,
+    sums: Vec<f64>,
+}
+
+/// All signed permutation matrices of size `du` (row-major), identity first.
+pub fn signed_permutations(du: usize) -> Vec<Vec<f32>> {
+    fn permutations(items: Vec<usize>) -> Vec<Vec<usize>> {
+        if items.len() <= 1 {
+            return vec![items];
+        }
+        let mut out = vec![];
+        for (i, &first) in items.iter().enumerate() {
+            let mut rest = items.clone();
+            rest.remove(i);
+            for mut tail in permutations(rest) {
+                tail.insert(0, first);
+                out.push(tail);
+            }
+        }
+        out
+    }
+    let mut all = vec![];
+    for perm in permutations((0..du).collect()) {
+        for bits in 0..1usize << du {
+            let mut m = vec![0.0f32; du * du];
+            for (row, &col) in perm.iter().enumerate() {
+                m[row * du + col] = if bits & (1 << row) != 0 { -1.0 } else { 1.0 };
+            }
+            all.push(m);
+        }
+    }
+    all
+}
+
+impl OrientationSearch {
+    pub fn new(du: usize) -> Self {
+        let candidates = signed_permutations(du);
+        let sums = vec![0.0; candidates.len()];
+        Self { candidates, sums }
+    }
+
+    /// Adds this batch's risk under every candidate `p` (latent `h -> p h`).
+    pub fn observe(&mut self, inputs: &LossInputs, loss: &LossConfig, dt: f64) {
+        let du = inputs.h_now.dims()[1];
+        let device = inputs.h_now.device();
+        for (k, candidate) in self.candidates.iter().enumerate() {
+            // Rows are samples: h p^T.
+            let p_t = Tensor::<2>::from_data(TensorData::new(candidate.clone(), [du, du]), &device)
+                .transpose();
+            let h_prev = inputs.h_prev.clone().detach().matmul(p_t.clone());
+            let h_now = inputs.h_now.clone().detach().matmul(p_t.clone());
+            let h_next = inputs.h_next.clone().detach().matmul(p_t);
+            let v_now = (h_now.clone() - h_prev) / dt;
+            let v_next = (h_next.clone() - h_now.clone()) / dt;
+            let target = crate::losses::hindsight_targets(
+                h_now.clone(),
+                v_now.clone(),
+                inputs.u.clone(),
+                &inputs.permutation,
+                loss.kp,
+                loss.kd,
+            );
+            let risk = crate::losses::lyapunov_risk(
+                (h_now, v_now),
+                (h_next, v_next),
+                target,
+                loss.q_h,
+                loss.q_v,
+                loss.lyapunov_dt_s.unwrap_or(dt),
+            );
+            self.sums[k] += crate::model::to_vec(risk)
+                .first()
+                .copied()
+                .unwrap_or(f32::NAN) as f64;
+        }
+    }
+
+    /// Ends the window: the best candidate if it beats the current orientation by 10%, with
+    /// the window's summed risks of the current orientation and the best.
+    pub fn decide(&mut self) -> Option<(Vec<f32>, f64, f64)> {
+        let best = (0..self.sums.len())
+            .min_by(|&a, &b| self.sums[a].total_cmp(&self.sums[b]))
+            .unwrap_or(0);
+        let (identity, best_sum) = (self.sums[0], self.sums[best]);
+        self.sums.iter_mut().for_each(|s| *s = 0.0);
+        (best != 0 && best_sum < 0.9 * identity)
+            .then(|| (self.candidates[best].clone(), identity, best_sum))
+    }
+}
+
 /// How a run ended.
 #[derive(Debug, Clone)]
 pub struct TrainSummary {
@@ -302,6 +418,7 @@ pub fn train(
         }
         let (m, a, meta) = load_checkpoint(&run.checkpoint(), model, device)?;
         (model, adam, start) = (m, a, meta.step);
+        truncate_metrics(&run.metrics(), start)?;
     } else {
         if run.checkpoint().exists() {
             return Err(Error::WouldClobber(run.checkpoint()));
@@ -322,19 +439,45 @@ pub fn train(
     let dt = data.meta.control_dt_s;
     let clock = Instant::now();
     let mut last = None;
+    let mut search =
+        (config.orientation_search_every > 0).then(|| OrientationSearch::new(data.action_dim()));
     for step in start..config.steps {
         let inputs = loss_inputs(&model, data, config, step, device);
+        if let Some(search) = search.as_mut() {
+            search.observe(&inputs, &config.loss, dt);
+        }
         let terms = procl_loss(&config.loss, &model.dynamics, inputs, dt);
         let values = terms.values();
         if !values.is_finite() {
+            let kept = match (step / config.checkpoint_every) * config.checkpoint_every {
+                0 if !resume => "no checkpoint was written yet".to_string(),
+                0 => format!("the checkpoint in {} is kept", run.checkpoint().display()),
+                good => format!(
+                    "the last good checkpoint (step {good}) is kept in {}",
+                    run.checkpoint().display()
+                ),
+            };
             return Err(Error::Diverged(format!(
-                "non-finite loss at step {step} ({values:?}); the last good checkpoint (step {}) is kept in {}",
-                (step / config.checkpoint_every) * config.checkpoint_every,
-                run.checkpoint().display()
+                "non-finite loss at step {} ({values:?}); {kept}",
+                step + 1
             )));
         }
         let grads = terms.total.backward();
         model = adam.step(config.learning_rate, model, &grads);
+        if let Some(search) = search.as_mut()
+            && (step + 1) % config.orientation_search_every == 0
+            && let Some((flip, identity, best)) = search.decide()
+        {
+            model = model.reorient_latent(&flip);
+            let line = format!("{},{:?},{identity:.6},{best:.6}\n", step + 1, flip);
+            let log = run.dir.join("orientation.csv");
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&log)
+                .and_then(|mut f| f.write_all(line.as_bytes()))
+                .map_err(|e| Error::io(&log, e))?;
+        }
         let row: Vec<String> = values
             .as_array()
             .iter()
@@ -363,6 +506,29 @@ pub fn train(
         steps_done: config.steps,
         last,
         seconds: clock.elapsed().as_secs_f64(),
+    })
+}
+
+/// Drops the metric rows after `step` (written after the last checkpoint by a run that then
+/// stopped), so a resumed run's `metrics.csv` has each step once.
+fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let kept: Vec<&str> = text
+        .lines()
+        .enumerate()
+        .filter(|(i, line)| {
+            *i == 0
+                || line
+                    .split(',')
+                    .next()
+                    .and_then(|s| s.parse::<u64>().ok())
+                    .is_some_and(|s| s <= step)
+        })
+        .map(|(_, line)| line)
+        .collect();
+    let body = kept.join("\n") + "\n";
+    crate::write_atomically(path, true, |w| {
+        w.write_all(body.as_bytes()).map_err(|e| Error::io(path, e))
     })
 }
 

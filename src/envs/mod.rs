@@ -104,8 +104,12 @@ pub trait Env: Send {
     fn state(&self) -> State;
     /// Sets the state; fails on a wrong length or a non-finite entry.
     fn set_state(&mut self, state: &State) -> Result<()>;
+    /// The configuration box (joint ranges), one `[lo, hi]` per configuration dimension.
+    fn config_ranges(&self) -> Vec<[f64; 2]>;
     /// A configuration drawn uniformly over the configuration space (the joint ranges).
-    fn sample_config(&self, rng: &mut ChaCha8Rng) -> Vec<f64>;
+    fn sample_config(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
+        sample_box(rng, &self.config_ranges())
+    }
     /// Advances one control period under `action` (clipped to [-1, 1]; NaN counts as 0).
     fn step(&mut self, action: &[f64]);
     /// Renders the current state into `frame`.

@@ -1,10 +1,8 @@
 //! Point mass-2D: dm_control's `point_mass` (two slide joints, soft walls) seen from above.
 
-use rand_chacha::ChaCha8Rng;
-
 use super::mujoco::{Dynamics2, Joint, SoftLimitModel, euler_step};
 use super::render2d::{Canvas, Shape, TopDownCamera};
-use super::{Env, EnvKind, Frame, State, clip_action, sample_box, validate_state};
+use super::{Env, EnvKind, Frame, State, clip_action, validate_state};
 use crate::error::Result;
 
 /// Physical and visual parameters of the point mass (defaults from dm_control / spec.md 1.1).
@@ -114,8 +112,8 @@ impl Env for PointMass {
         self.qd = [state.qd[0], state.qd[1]];
         Ok(())
     }
-    fn sample_config(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
-        sample_box(rng, &self.joints.map(|j| j.range))
+    fn config_ranges(&self) -> Vec<[f64; 2]> {
+        self.joints.map(|j| j.range).to_vec()
     }
     fn step(&mut self, action: &[f64]) {
         // The two slide joints are orthogonal: M = m I, no bias forces. MuJoCo's dof_invweight0

@@ -1,10 +1,8 @@
 //! Reacher-2D: dm_control's two-link `reacher` with NewtonianVAE's joint ranges, seen from above.
 
-use rand_chacha::ChaCha8Rng;
-
 use super::mujoco::{Dynamics2, Joint, Mat2, SoftLimitModel, euler_step};
 use super::render2d::{Canvas, Shape, TopDownCamera};
-use super::{Env, EnvKind, Frame, State, clip_action, sample_box, validate_state};
+use super::{Env, EnvKind, Frame, State, clip_action, validate_state};
 use crate::error::Result;
 
 /// Physical and visual parameters of the reacher (defaults from dm_control / spec.md 1.2).
@@ -216,8 +214,8 @@ impl Env for Reacher {
         self.qd = [state.qd[0], state.qd[1]];
         Ok(())
     }
-    fn sample_config(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
-        sample_box(rng, &self.joints.map(|j| j.range))
+    fn config_ranges(&self) -> Vec<[f64; 2]> {
+        self.joints.map(|j| j.range).to_vec()
     }
     fn step(&mut self, action: &[f64]) {
         let dynamics = Dynamics2 {

@@ -37,7 +37,7 @@ fn image_error(path: &Path, e: impl std::fmt::Display) -> Error {
 }
 
 /// Draws into an in-memory RGB buffer with `draw`, then writes the PNG atomically.
-fn render_png(
+pub(crate) fn render_png(
     path: &Path,
     size: (u32, u32),
     draw: impl FnOnce(

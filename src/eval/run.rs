@@ -29,6 +29,22 @@ impl EvalOutputs {
     }
 }
 
+/// Computes the latent diagnostics of a trained run and writes `latent_map.png` and
+/// `diagnostics.json` into its folder.
+pub fn write_diagnostics(run: &RunPaths) -> Result<super::LatentDiagnostics> {
+    let device = cpu_device();
+    let (config, model) = run.load_model(&device)?;
+    let png = run.dir.join("latent_map.png");
+    let diagnostics = super::latent_diagnostics(config.env, &model.encoder, &device, Some(&png))?;
+    let path = run.dir.join("diagnostics.json");
+    let json = serde_json::to_string_pretty(&diagnostics)
+        .map_err(|e| Error::config("diagnostics", e.to_string()))?;
+    crate::write_atomically(&path, true, |w| {
+        std::io::Write::write_all(w, json.as_bytes()).map_err(|e| Error::io(&path, e))
+    })?;
+    Ok(diagnostics)
+}
+
 /// Evaluates the oracle PD on the true state for `protocol`.
 pub fn evaluate_oracle(env: crate::envs::EnvKind, protocol: &ReachConfig) -> Result<MethodSummary> {
     let gains = oracle_gains(env);

@@ -52,6 +52,7 @@ impl DynamicsConfig {
             fc2: LinearConfig::new(self.hidden, self.hidden).init(device),
             fc3: LinearConfig::new(self.hidden, d).init(device),
             log_std: Param::from_tensor(Tensor::full([2 * d], self.init_std.ln(), device)),
+            latent_transform: super::transform_param(d, device),
         }
     }
 }
@@ -64,9 +65,13 @@ pub struct Dynamics {
     fc1: Linear,
     fc2: Linear,
     fc3: Linear,
-    /// Log std of the transition density over `(h', dt v')`, `[2 du]`: velocities are scored
-    /// as per-step displacements so both halves share one scale (see [`Transition::z_scaled`]).
+    /// Log std of the transition density over unoriented `(h', dt v')`, `[2 du]`: velocities are
+    /// scored as per-step displacements so both halves share one scale (see `losses::procl_loss`).
     pub log_std: Param<Tensor<1>>,
+    /// The encoder's orientation `Q` (kept equal to it): the MLP works in unoriented
+    /// coordinates, `a_Q(h, v, u) = Q a(Q^T h, Q^T v, u)`, so reorienting both networks leaves
+    /// every PC3 loss exactly unchanged.
+    pub latent_transform: Param<Tensor<2>>,
 }
 
 /// The transition density's mean `f(z, u) = (h', v')` and log std.
@@ -83,13 +88,6 @@ impl Transition {
     pub fn z(&self) -> Tensor<2> {
         Tensor::cat(vec![self.h_next.clone(), self.v_next.clone()], 1)
     }
-
-    /// `[n, 2 du]`: `(h', dt v')`, the coordinates the transition density is scored in. A
-    /// Gaussian over these is a Gaussian over `z'` with std `(s_h, s_v / dt)`; the log densities
-    /// differ by the constant `du ln(1/dt)`, which [`crate::losses`] adds back.
-    pub fn z_scaled(&self, dt: f64) -> Tensor<2> {
-        Tensor::cat(vec![self.h_next.clone(), self.v_next.clone() * dt], 1)
-    }
 }
 
 fn dense(layer: &Linear, x: Tensor<2>) -> Tensor<2> {
@@ -102,6 +100,16 @@ fn dense_tangent(layer: &Linear, t: Tensor<2>) -> Tensor<2> {
 }
 
 impl Dynamics {
+    /// Latent rows `[n, du]` in the unoriented coordinates: `x Q` (= `(Q^T x^T)^T`).
+    pub fn unoriented(&self, x: Tensor<2>) -> Tensor<2> {
+        x.matmul(self.latent_transform.val())
+    }
+
+    /// Unoriented rows back to latent coordinates: `x Q^T`.
+    fn oriented(&self, x: Tensor<2>) -> Tensor<2> {
+        x.matmul(self.latent_transform.val().transpose())
+    }
+
     /// Mean of the transition: `h, v, u [n, du]` -> `(h', v')`.
     pub fn forward(&self, h: Tensor<2>, v: Tensor<2>, u: Tensor<2>, dt: f64) -> Transition {
         self.forward_jvp(h, v, u, None, dt).0
@@ -118,21 +126,35 @@ impl Dynamics {
         tangent: Option<(Tensor<2>, Tensor<2>, Tensor<2>)>,
         dt: f64,
     ) -> (Transition, Option<Transition>) {
-        let x = Tensor::cat(vec![h.clone(), v.clone() * dt, u], 1); // [n, 3 du]
+        let x = Tensor::cat(
+            vec![
+                self.unoriented(h.clone()),
+                self.unoriented(v.clone()) * dt,
+                u,
+            ],
+            1,
+        ); // [n, 3 du]
         let pre1 = dense(&self.fc1, x); // [n, hidden]
         let a1 = relu(pre1.clone());
         let pre2 = dense(&self.fc2, a1); // [n, hidden]
         let a2 = relu(pre2.clone());
-        let accel = dense(&self.fc3, a2); // [n, du]
+        let accel = self.oriented(dense(&self.fc3, a2)); // [n, du]
         let v_next = v + accel * dt;
         let h_next = h + v_next.clone() * dt;
         let mean = Transition { h_next, v_next };
 
         let tangent_out = tangent.map(|(th, tv, tu)| {
-            let tx = Tensor::cat(vec![th.clone(), tv.clone() * dt, tu], 1);
+            let tx = Tensor::cat(
+                vec![
+                    self.unoriented(th.clone()),
+                    self.unoriented(tv.clone()) * dt,
+                    tu,
+                ],
+                1,
+            );
             let t1 = dense_tangent(&self.fc1, tx) * pre1.greater_elem(0.0).float();
             let t2 = dense_tangent(&self.fc2, t1) * pre2.greater_elem(0.0).float();
-            let t_accel = dense_tangent(&self.fc3, t2);
+            let t_accel = self.oriented(dense_tangent(&self.fc3, t2));
             let t_v_next = tv + t_accel * dt;
             let t_h_next = th + t_v_next.clone() * dt;
             Transition {

@@ -1,6 +1,6 @@
 //! Encoder `e`: one 64x64 RGB frame -> configuration latent `h` in R^du.
 
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::{relu, softmax};
@@ -29,6 +29,15 @@ pub struct EncoderConfig {
     pub trunk_channels: [usize; 2],
     /// The head.
     pub head: EncoderHead,
+    /// Initial sharpness `beta` of the soft-argmax (`softmax(beta * maps)`), learned from there.
+    /// With beta = 1 the fresh attention is nearly uniform, keypoints barely move with the
+    /// scene, and CPC can lose the race against consistency's contraction (latent collapse).
+    #[serde(default = "default_sharpness")]
+    pub keypoint_sharpness: f64,
+}
+
+fn default_sharpness() -> f64 {
+    1.0
 }
 
 impl EncoderConfig {
@@ -38,6 +47,7 @@ impl EncoderConfig {
             latent_dim,
             trunk_channels: [16, 32],
             head: EncoderHead::SoftArgmax { keypoints: 16 },
+            keypoint_sharpness: 1.0,
         }
     }
 
@@ -77,6 +87,11 @@ impl EncoderConfig {
             EncoderHead::SoftArgmax { keypoints } => (
                 None,
                 Some(KeypointHead {
+                    log_sharpness: Param::from_tensor(Tensor::full(
+                        [keypoints],
+                        self.keypoint_sharpness.ln(),
+                        device,
+                    )),
                     features: conv(c2, keypoints, 1, 1, 0),
                     out: LinearConfig::new(2 * keypoints, self.latent_dim).init(device),
                 }),
@@ -87,6 +102,7 @@ impl EncoderConfig {
             conv2: conv(c1, c2, 3, 2, 1),
             mlp,
             keypoints,
+            latent_transform: super::transform_param(self.latent_dim, device),
         }
     }
 }
@@ -103,6 +119,8 @@ pub struct MlpHead {
 #[derive(Module, Debug)]
 pub struct KeypointHead {
     features: Conv2d,
+    /// Log of the per-keypoint softmax sharpness, `[K]`.
+    log_sharpness: Param<Tensor<1>>,
     out: Linear,
 }
 
@@ -113,11 +131,21 @@ pub struct Encoder {
     conv2: Conv2d,
     mlp: Option<MlpHead>,
     keypoints: Option<KeypointHead>,
+    /// Orientation `Q`, a signed permutation, not trained: `h = Q head(frame)` (see
+    /// [`super::ProclModel::reorient_latent`]).
+    pub latent_transform: Param<Tensor<2>>,
 }
 
 impl Encoder {
     /// `frames [n, 3, 64, 64]` (from [`super::frames_to_tensor`]) -> `h [n, du]`.
     pub fn forward(&self, frames: Tensor<4>) -> Tensor<2> {
+        // Rows are samples: h = raw Q^T.
+        self.forward_unoriented(frames)
+            .matmul(self.latent_transform.val().transpose())
+    }
+
+    /// The head's output before the orientation `Q`.
+    fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
         let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16]
         if let Some(head) = &self.mlp {
@@ -132,7 +160,8 @@ impl Encoder {
             .expect("encoder has one head by construction");
         let maps = head.features.forward(x); // [n, K, 16, 16]
         let [n, k, rows, cols] = maps.dims();
-        let attention = softmax(maps.reshape([n, k, rows * cols]), 2); // [n, K, 256]
+        let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
+        let attention = softmax(maps.reshape([n, k, rows * cols]) * sharpness, 2); // [n, K, 256]
         let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
         let expected_x = (attention.clone() * grid_x).sum_dim(2); // [n, K, 1]
         let expected_y = (attention * grid_y).sum_dim(2); // [n, K, 1]

@@ -108,6 +108,43 @@ impl ModelConfig {
     }
 }
 
+/// Name of the non-trained orientation parameter (skipped by init and the optimiser).
+pub(crate) const LATENT_TRANSFORM: &str = "latent_transform";
+
+/// A fresh orientation `Q = I` (du x du), excluded from training.
+fn transform_param(du: usize, device: &Device) -> burn::module::Param<Tensor<2>> {
+    let eye: Vec<f32> = (0..du * du)
+        .map(|k| if k / du == k % du { 1.0 } else { 0.0 })
+        .collect();
+    burn::module::Param::from_tensor(Tensor::from_data(TensorData::new(eye, [du, du]), device))
+        .set_require_grad(false)
+}
+
+impl ProclModel {
+    /// The orientation `Q` of the latent (a signed permutation, row-major `du x du`):
+    /// `h = Q head(frame)`.
+    pub fn latent_transform(&self) -> Vec<f32> {
+        to_vec(self.encoder.latent_transform.val())
+    }
+
+    /// Applies the signed permutation `p` (row-major `du x du`) to the latent in the encoder and
+    /// the dynamics together: `h -> p h`. CPC, consistency and curvature are exactly invariant
+    /// to this (the dynamics MLP and the diagonal transition density work in the unpermuted
+    /// coordinates); the Lyapunov risk is not, which is what lets the orientation search pick
+    /// the PD-controllable one of the mirror images and axis orders that gradient descent
+    /// cannot move between (it would have to collapse a latent axis on the way).
+    pub fn reorient_latent(self, p: &[f32]) -> Self {
+        let device = self.encoder.latent_transform.val().device();
+        let du = (p.len() as f64).sqrt() as usize;
+        let p = Tensor::<2>::from_data(TensorData::new(p.to_vec(), [du, du]), &device);
+        let apply = |q: burn::module::Param<Tensor<2>>| q.map(|q| p.clone().matmul(q));
+        let mut model = self;
+        model.encoder.latent_transform = apply(model.encoder.latent_transform);
+        model.dynamics.latent_transform = apply(model.dynamics.latent_transform);
+        model
+    }
+}
+
 /// Marks a freshly built parameter tensor as trainable when it lives on an autodiff device
 /// (inference devices have no autodiff and need no gradients).
 pub(crate) fn trainable<const D: usize>(tensor: Tensor<D>) -> Tensor<D> {

@@ -3,3 +3,5 @@
 mod cli;
 mod data;
 mod envs;
+mod research;
+mod train;

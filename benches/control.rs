@@ -1,0 +1,51 @@
+//! One latent PD control step from a 64x64 frame (encode the new frame + PD law), on one
+//! thread. Target (issue 5): <= 1 ms now, goal <= 0.3 ms. Weights are freshly initialised:
+//! the cost does not depend on their values.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use procl::control::{LatentPdPolicy, PdController, Policy};
+use procl::envs::{EnvKind, FRAME_BYTES, State};
+use procl::model::{ModelConfig, cpu_device};
+use procl::train::{Method, Preset, TrainConfig};
+
+fn control_step(c: &mut Criterion) {
+    // burn-flex parallelises on rayon's current pool; a 1-thread pool makes this one core.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("rayon pool");
+    let mut group = c.benchmark_group("control_step_1thread");
+    for preset in [Preset::Procl, Preset::Paper] {
+        let config: ModelConfig =
+            TrainConfig::preset(preset, Method::Procl, EnvKind::PointMass).model;
+        let device = cpu_device();
+        let model = config.init(0, &device).expect("model");
+        let mut policy = LatentPdPolicy::new(
+            model.encoder,
+            device,
+            PdController { kp: 10.0, kd: 2.0 },
+            0.02,
+        );
+        let mut env = EnvKind::PointMass.make();
+        env.reset(0).expect("reset");
+        let mut frame = [0u8; FRAME_BYTES];
+        env.render(&mut frame);
+        let state = State {
+            q: vec![0.0; 2],
+            qd: vec![0.0; 2],
+        };
+        policy.reset(&frame, &frame, &state);
+        let mut u = [0.0; 2];
+        group.bench_function(format!("{preset:?}").to_lowercase(), |b| {
+            pool.install(|| b.iter(|| policy.act(std::hint::black_box(&frame), &state, &mut u)))
+        });
+    }
+    group.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().without_plots();
+    targets = control_step
+}
+criterion_main!(benches);

@@ -1,0 +1,224 @@
+//! Ablation grids (issue 9): every cell of a TOML grid trained on several seeds and evaluated
+//! with the goal-reaching protocol; resumable (finished cells are read back, not redone), one
+//! line per finished cell in `ablation.jsonl`, and `ablation.md` + `ablation.json` at the end.
+//!
+//! Grid file:
+//!
+//! ```toml
+//! [base]            # fields over the preset, for every cell
+//! steps = 1000
+//! [[cell]]
+//! name = "default"
+//! [[cell]]
+//! name = "paper"
+//! preset = "paper"
+//! [[cell]]
+//! name = "eps=0.1"
+//! loss = { latent_noise_std = 0.1 }
+//! ```
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use crate::data::Dataset;
+use crate::error::{Error, Result};
+use crate::eval::{ReachConfig, evaluate_run, write_diagnostics};
+use crate::model::cpu_device;
+use crate::train::{RunPaths, config_from_table, train};
+
+/// A parsed grid.
+#[derive(Debug, Clone)]
+pub struct Grid {
+    pub base: toml::Table,
+    pub cells: Vec<(String, toml::Table)>,
+}
+
+impl Grid {
+    pub fn from_toml(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let bad = |m: String| Error::config(format!("grid {}", path.display()), m);
+        let mut table: toml::Table = text
+            .parse()
+            .map_err(|e: toml::de::Error| bad(e.message().to_string()))?;
+        let base = match table.remove("base") {
+            Some(toml::Value::Table(t)) => t,
+            None => toml::Table::new(),
+            Some(_) => return Err(bad("`base` must be a table".into())),
+        };
+        let cells = match table.remove("cell") {
+            Some(toml::Value::Array(cells)) => cells,
+            _ => return Err(bad("needs at least one [[cell]]".into())),
+        };
+        if let Some(key) = table.keys().next() {
+            return Err(bad(format!(
+                "unknown top-level key `{key}` (expected base, cell)"
+            )));
+        }
+        let mut parsed = vec![];
+        for (k, cell) in cells.into_iter().enumerate() {
+            let toml::Value::Table(mut cell) = cell else {
+                return Err(bad(format!("cell {k} is not a table")));
+            };
+            let name = match cell.remove("name") {
+                Some(toml::Value::String(s))
+                    if !s.is_empty()
+                        && s.chars()
+                            .all(|c| c.is_ascii_alphanumeric() || "-_=.".contains(c)) =>
+                {
+                    s
+                }
+                _ => {
+                    return Err(bad(format!(
+                        "cell {k} needs a `name` of letters, digits and - _ = ."
+                    )));
+                }
+            };
+            if parsed.iter().any(|(n, _)| n == &name) {
+                return Err(bad(format!("duplicate cell name `{name}`")));
+            }
+            parsed.push((name, cell));
+        }
+        Ok(Self {
+            base,
+            cells: parsed,
+        })
+    }
+}
+
+/// One trained and evaluated (cell, seed).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CellResult {
+    pub cell: String,
+    pub seed: u64,
+    pub success_rate: f64,
+    pub final_mean: f64,
+    pub linear_r2: f64,
+    pub det: Option<f64>,
+    pub oracle_success_rate: f64,
+    pub train_seconds: f64,
+}
+
+/// Runs (or resumes) the grid on `data`, training seeds `seeds` per cell, into `out`. Results
+/// already in `out/ablation.jsonl` are read back instead of trained (so grids split across
+/// machines are merged by concatenating their `ablation.jsonl` lines); with `train_missing`
+/// false nothing is trained and the summary covers what is there.
+pub fn run_grid(
+    grid: &Grid,
+    data: &Dataset,
+    seeds: std::ops::Range<u64>,
+    protocol: &ReachConfig,
+    out: &Path,
+    train_missing: bool,
+    mut log: impl FnMut(&CellResult),
+) -> Result<Vec<CellResult>> {
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let jsonl = out.join("ablation.jsonl");
+    let mut done: Vec<CellResult> = std::fs::read_to_string(&jsonl)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    // Validate every cell before spending hours on the first one.
+    let mut configs = vec![];
+    for (name, cell) in &grid.cells {
+        let mut table = grid.base.clone();
+        for (k, v) in cell {
+            table.insert(k.clone(), v.clone());
+        }
+        let config = config_from_table(table, data.meta.env, None)
+            .map_err(|e| Error::config(format!("cell `{name}`"), e.to_string()))?;
+        configs.push((name.clone(), config));
+    }
+    for (name, base_config) in &configs {
+        for seed in seeds.clone() {
+            if !train_missing || done.iter().any(|r| &r.cell == name && r.seed == seed) {
+                continue;
+            }
+            let mut config = base_config.clone();
+            config.seed = seed;
+            let run = RunPaths::new(out.join(name).join(format!("seed-{seed}")));
+            let resume = run.checkpoint().exists();
+            let start = std::time::Instant::now();
+            train(&config, data, &run, resume, &cpu_device(), |_, _| {})?;
+            let train_seconds = start.elapsed().as_secs_f64();
+            let diagnostics = write_diagnostics(&run)?;
+            let report = evaluate_run(&run, protocol, |_| {})?;
+            let result = CellResult {
+                cell: name.clone(),
+                seed,
+                success_rate: report.methods[0].success_rate,
+                final_mean: report.methods[0].final_mean,
+                linear_r2: diagnostics.linear_r2,
+                det: diagnostics.config_to_latent_det,
+                oracle_success_rate: report.methods.get(1).map_or(f64::NAN, |m| m.success_rate),
+                train_seconds,
+            };
+            let line = serde_json::to_string(&result)
+                .map_err(|e| Error::config("ablation", e.to_string()))?;
+            let mut file = std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&jsonl)
+                .map_err(|e| Error::io(&jsonl, e))?;
+            writeln!(file, "{line}").map_err(|e| Error::io(&jsonl, e))?;
+            log(&result);
+            done.push(result);
+        }
+    }
+    let order: Vec<&String> = configs.iter().map(|(n, _)| n).collect();
+    done.retain(|r| order.contains(&&r.cell));
+    done.sort_by_key(|r| (order.iter().position(|n| *n == &r.cell), r.seed));
+    write_summary(out, &done, &order, protocol)?;
+    Ok(done)
+}
+
+fn write_summary(
+    out: &Path,
+    results: &[CellResult],
+    order: &[&String],
+    protocol: &ReachConfig,
+) -> Result<PathBuf> {
+    let json_path = out.join("ablation.json");
+    let json = serde_json::to_string_pretty(results)
+        .map_err(|e| Error::config("ablation", e.to_string()))?;
+    crate::write_atomically(&json_path, true, |w| {
+        w.write_all(json.as_bytes())
+            .map_err(|e| Error::io(&json_path, e))
+    })?;
+    let mut md = format!(
+        "# Ablation\n\n{} episodes per seed, {} steps, success = final distance < {} {}.\n\n\
+         | cell | seeds | success mean | success min-max | final distance | R^2 | det(q->h) > 0 | train s |\n|---|---|---|---|---|---|---|---|\n",
+        protocol.episodes, protocol.horizon, protocol.success_threshold, protocol.distance_unit
+    );
+    for name in order {
+        let rows: Vec<&CellResult> = results.iter().filter(|r| &&r.cell == name).collect();
+        if rows.is_empty() {
+            continue;
+        }
+        let n = rows.len() as f64;
+        let mean = |f: &dyn Fn(&CellResult) -> f64| rows.iter().map(|r| f(r)).sum::<f64>() / n;
+        let min = rows.iter().map(|r| r.success_rate).fold(f64::MAX, f64::min);
+        let max = rows.iter().map(|r| r.success_rate).fold(f64::MIN, f64::max);
+        let positive = rows
+            .iter()
+            .filter(|r| r.det.is_some_and(|d| d > 0.0))
+            .count();
+        md.push_str(&format!(
+            "| {name} | {} | {:.0}% | {:.0}-{:.0}% | {:.4} | {:.3} | {positive}/{} | {:.0} |\n",
+            rows.len(),
+            100.0 * mean(&|r| r.success_rate),
+            100.0 * min,
+            100.0 * max,
+            mean(&|r| r.final_mean),
+            mean(&|r| r.linear_r2),
+            rows.len(),
+            mean(&|r| r.train_seconds),
+        ));
+    }
+    let md_path = out.join("ablation.md");
+    crate::write_atomically(&md_path, true, |w| {
+        w.write_all(md.as_bytes())
+            .map_err(|e| Error::io(&md_path, e))
+    })?;
+    Ok(md_path)
+}

@@ -1,0 +1,245 @@
+//! Latent diagnostics: encode a grid of true configurations, plot `h` coloured by the true
+//! configuration, and measure how linear the map is (R^2 of q from h, determinant of the fitted
+//! q -> h map: its sign says whether PD on h pushes the right way).
+
+use std::path::Path;
+
+use burn::tensor::Device;
+use plotters::prelude::*;
+
+use crate::envs::{EnvKind, FRAME_BYTES, State};
+use crate::error::Result;
+use crate::model::{Encoder, frames_to_tensor, to_vec};
+
+/// How usable a latent is, at a glance.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LatentDiagnostics {
+    /// R^2 of the least-squares linear fit q ~ A h + b, averaged over configuration dims.
+    pub linear_r2: f64,
+    /// R^2 per configuration dimension.
+    pub linear_r2_per_dim: Vec<f64>,
+    /// The fitted map h ~ M q + c (rows: h dims), and det(M) for square maps.
+    pub config_to_latent: Vec<Vec<f64>>,
+    pub config_to_latent_det: Option<f64>,
+    /// Grid points encoded.
+    pub points: usize,
+}
+
+/// Configurations on a `side x side` grid over the env's configuration box (at rest).
+pub fn config_grid(env: EnvKind, side: usize) -> Vec<Vec<f64>> {
+    let ranges = env.make().config_ranges();
+    let lerp = |r: [f64; 2], k: usize| r[0] + (r[1] - r[0]) * (k as f64 + 0.5) / side as f64;
+    (0..side * side)
+        .map(|k| vec![lerp(ranges[0], k % side), lerp(ranges[1], k / side)])
+        .collect()
+}
+
+/// Encodes the configurations `configs` (rendered at rest) in batches.
+pub fn encode_configs(
+    env: EnvKind,
+    encoder: &Encoder,
+    configs: &[Vec<f64>],
+    device: &Device,
+) -> Result<Vec<Vec<f64>>> {
+    let mut sim = env.make();
+    let mut frames = vec![[0u8; FRAME_BYTES]; configs.len()];
+    for (q, frame) in configs.iter().zip(frames.iter_mut()) {
+        sim.set_state(&State {
+            q: q.clone(),
+            qd: vec![0.0; q.len()],
+        })?;
+        sim.render(frame);
+    }
+    let mut latents = vec![];
+    for chunk in frames.chunks(256) {
+        let h = encoder.forward(frames_to_tensor(chunk.iter().map(|f| f.as_slice()), device));
+        let du = h.dims()[1];
+        let values = to_vec(h);
+        latents.extend(
+            values
+                .chunks(du)
+                .map(|row| row.iter().map(|&x| x as f64).collect::<Vec<f64>>()),
+        );
+    }
+    Ok(latents)
+}
+
+/// Least squares `y ~ W [x, 1]`: returns W as rows (one per y dim) and the R^2 of each y dim.
+pub fn linear_fit(x: &[Vec<f64>], y: &[Vec<f64>]) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let (dx, dy) = (
+        x.first().map_or(0, Vec::len) + 1,
+        y.first().map_or(0, Vec::len),
+    );
+    // Normal equations (X^T X) W^T = X^T Y, with a tiny ridge for degenerate (collapsed) inputs.
+    let mut xtx = vec![vec![0.0; dx]; dx];
+    let mut xty = vec![vec![0.0; dy]; dx];
+    for (xi, yi) in x.iter().zip(y) {
+        let row: Vec<f64> = xi.iter().copied().chain(std::iter::once(1.0)).collect();
+        for a in 0..dx {
+            for b in 0..dx {
+                xtx[a][b] += row[a] * row[b];
+            }
+            for b in 0..dy {
+                xty[a][b] += row[a] * yi[b];
+            }
+        }
+    }
+    for (a, row) in xtx.iter_mut().enumerate() {
+        row[a] += 1e-12;
+    }
+    let solution = solve(xtx, xty); // [dx][dy]
+    let weights: Vec<Vec<f64>> = (0..dy)
+        .map(|b| (0..dx).map(|a| solution[a][b]).collect())
+        .collect();
+    let r2 = (0..dy)
+        .map(|b| {
+            let mean = y.iter().map(|yi| yi[b]).sum::<f64>() / y.len().max(1) as f64;
+            let (mut ss_res, mut ss_tot) = (0.0, 0.0);
+            for (xi, yi) in x.iter().zip(y) {
+                let pred: f64 = xi.iter().zip(&weights[b]).map(|(a, w)| a * w).sum::<f64>()
+                    + weights[b][dx - 1];
+                ss_res += (yi[b] - pred).powi(2);
+                ss_tot += (yi[b] - mean).powi(2);
+            }
+            if ss_tot > 0.0 {
+                1.0 - ss_res / ss_tot
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    (weights, r2)
+}
+
+/// Solves `A X = B` by Gaussian elimination with partial pivoting (A square, small).
+fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<Vec<f64>>) -> Vec<Vec<f64>> {
+    let n = a.len();
+    for col in 0..n {
+        let pivot = (col..n)
+            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
+            .unwrap_or(col);
+        a.swap(col, pivot);
+        b.swap(col, pivot);
+        let p = a[col][col];
+        if p.abs() < 1e-300 {
+            continue;
+        }
+        for row in 0..n {
+            if row != col {
+                let f = a[row][col] / p;
+                if f != 0.0 {
+                    let (pivot_a, pivot_b) = (a[col].clone(), b[col].clone());
+                    a[row]
+                        .iter_mut()
+                        .zip(&pivot_a)
+                        .for_each(|(x, p)| *x -= f * p);
+                    b[row]
+                        .iter_mut()
+                        .zip(&pivot_b)
+                        .for_each(|(x, p)| *x -= f * p);
+                }
+            }
+        }
+    }
+    (0..n)
+        .map(|i| {
+            b[i].iter()
+                .map(|v| {
+                    if a[i][i].abs() > 1e-300 {
+                        v / a[i][i]
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Computes the diagnostics of `encoder` on a grid and, if `png` is given, plots the latent map.
+pub fn latent_diagnostics(
+    env: EnvKind,
+    encoder: &Encoder,
+    device: &Device,
+    png: Option<&Path>,
+) -> Result<LatentDiagnostics> {
+    let configs = config_grid(env, 24);
+    let latents = encode_configs(env, encoder, &configs, device)?;
+    let (_, r2) = linear_fit(&latents, &configs);
+    let (to_latent, _) = linear_fit(&configs, &latents);
+    let square: Vec<Vec<f64>> = to_latent
+        .iter()
+        .map(|row| row[..row.len() - 1].to_vec())
+        .collect();
+    let det = (square.len() == 2 && square[0].len() == 2)
+        .then(|| square[0][0] * square[1][1] - square[0][1] * square[1][0]);
+    if let Some(path) = png {
+        save_latent_map(path, env, &configs, &latents)?;
+    }
+    Ok(LatentDiagnostics {
+        linear_r2: r2.iter().sum::<f64>() / r2.len().max(1) as f64,
+        linear_r2_per_dim: r2,
+        config_to_latent: square,
+        config_to_latent_det: det,
+        points: configs.len(),
+    })
+}
+
+/// Scatter of `h` (first two dims), each point coloured by its true configuration (red: q0,
+/// blue: q1), grid neighbours joined so folds and twists are visible.
+fn save_latent_map(
+    path: &Path,
+    env: EnvKind,
+    configs: &[Vec<f64>],
+    latents: &[Vec<f64>],
+) -> Result<()> {
+    let ranges = env.make().config_ranges();
+    let side = (configs.len() as f64).sqrt().round() as usize;
+    super::plots::render_png(path, (640, 640), |root| {
+        let xs = latents.iter().map(|h| h[0]);
+        let ys = latents.iter().map(|h| h.get(1).copied().unwrap_or(0.0));
+        let (x0, x1) = xs.fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(x), b.max(x)));
+        let (y0, y1) = ys.fold((f64::MAX, f64::MIN), |(a, b), y| (a.min(y), b.max(y)));
+        let pad = 0.05 * (x1 - x0).max(y1 - y0).max(1e-9);
+        let mut chart = ChartBuilder::on(root)
+            .caption(
+                format!("latent map of {env}: h coloured by true configuration"),
+                ("sans-serif", 18),
+            )
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d((x0 - pad)..(x1 + pad), (y0 - pad)..(y1 + pad))
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("h[0]")
+            .y_desc("h[1]")
+            .draw()
+            .map_err(|e| e.to_string())?;
+        let point = |k: usize| (latents[k][0], latents[k].get(1).copied().unwrap_or(0.0));
+        for k in 0..configs.len() {
+            for next in [k + 1, k + side] {
+                let same_row = next != k + 1 || (k + 1) % side != 0;
+                if next < configs.len() && same_row {
+                    chart
+                        .draw_series(std::iter::once(PathElement::new(
+                            vec![point(k), point(next)],
+                            RGBColor(200, 200, 200),
+                        )))
+                        .map_err(|e| e.to_string())?;
+                }
+            }
+        }
+        chart
+            .draw_series(configs.iter().enumerate().map(|(k, q)| {
+                let unit = |i: usize| {
+                    ((q[i] - ranges[i][0]) / (ranges[i][1] - ranges[i][0])).clamp(0.0, 1.0)
+                };
+                let color = RGBColor((255.0 * unit(0)) as u8, 60, (255.0 * unit(1)) as u8);
+                Circle::new(point(k), 3, color.filled())
+            }))
+            .map_err(|e| e.to_string())?;
+        Ok(())
+    })
+}
