@@ -11,8 +11,8 @@ use crate::model::{Encoder, frames_to_tensor, to_vec};
 
 /// A controller in the closed loop: sees the frame (and, for the oracle only, the true state).
 pub trait Policy {
-    /// Starts an episode: the goal image and the first frame.
-    fn reset(&mut self, goal_frame: &[u8], first_frame: &[u8], state: &State);
+    /// Starts an episode toward the goal image.
+    fn reset(&mut self, goal_frame: &[u8]);
     /// The action for the newest frame; `u` has the action dimension.
     fn act(&mut self, frame: &[u8], state: &State, u: &mut [f64]);
     /// The latent configuration `h` of the last frame seen (empty for the oracle).
@@ -28,7 +28,8 @@ pub struct LatentPdPolicy {
     pd: PdController,
     dt: f64,
     h_goal: Vec<f64>,
-    h_prev: Vec<f64>,
+    /// Encoding of the previous frame (`None` at the start of an episode).
+    h_prev: Option<Vec<f64>>,
     h: Vec<f64>,
     /// Number of frames encoded so far (each frame exactly once).
     pub frames_encoded: usize,
@@ -44,7 +45,7 @@ impl LatentPdPolicy {
             pd,
             dt,
             h_goal: vec![],
-            h_prev: vec![],
+            h_prev: None,
             h: vec![],
             frames_encoded: 0,
             control_times_s: vec![],
@@ -62,25 +63,23 @@ impl LatentPdPolicy {
 }
 
 impl Policy for LatentPdPolicy {
-    fn reset(&mut self, goal_frame: &[u8], first_frame: &[u8], _state: &State) {
+    fn reset(&mut self, goal_frame: &[u8]) {
         self.h_goal = self.encode(goal_frame);
-        self.h = self.encode(first_frame);
-        // The system starts at rest, so the first velocity estimate is 0.
-        self.h_prev = self.h.clone();
+        self.h_prev = None;
     }
 
     fn act(&mut self, frame: &[u8], _state: &State, u: &mut [f64]) {
         let start = Instant::now();
+        // Only the new frame is encoded; the previous encoding is cached. Episodes start at
+        // rest, so the first velocity estimate is 0.
         let h = self.encode(frame);
-        // The frame passed to `reset` is the first frame; later frames are new ones.
-        let v: Vec<f64> = h
-            .iter()
-            .zip(&self.h_prev)
-            .map(|(a, b)| (a - b) / self.dt)
-            .collect();
+        let v: Vec<f64> = match &self.h_prev {
+            Some(prev) => h.iter().zip(prev).map(|(a, b)| (a - b) / self.dt).collect(),
+            None => vec![0.0; h.len()],
+        };
         let zeros = vec![0.0; h.len()];
         self.pd.control(&h, &v, &self.h_goal, &zeros, u);
-        self.h_prev = h.clone();
+        self.h_prev = Some(h.clone());
         self.h = h;
         self.control_times_s.push(start.elapsed().as_secs_f64());
     }
@@ -109,7 +108,7 @@ impl OraclePdPolicy {
 }
 
 impl Policy for OraclePdPolicy {
-    fn reset(&mut self, _goal_frame: &[u8], _first_frame: &[u8], _state: &State) {}
+    fn reset(&mut self, _goal_frame: &[u8]) {}
     fn act(&mut self, _frame: &[u8], state: &State, u: &mut [f64]) {
         let zeros = vec![0.0; state.q.len()];
         self.pd.control(&state.q, &state.qd, &self.goal, &zeros, u);

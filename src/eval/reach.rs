@@ -99,7 +99,7 @@ pub fn run_episode(
     };
     let mut u = vec![0.0; sim.action_dim()];
     let mut state = sim.state();
-    policy.reset(&goal_frame, &frame, &state);
+    policy.reset(&goal_frame);
     record.goal_latent = policy.goal_latent();
     for step in 0..=horizon {
         record

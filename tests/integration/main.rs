@@ -1,6 +1,7 @@
 //! procl's integration tests, one binary: environments, datasets, the command line.
 
 mod cli;
+mod control;
 mod data;
 mod envs;
 mod research;

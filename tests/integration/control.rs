@@ -1,0 +1,185 @@
+//! Control and evaluation: the oracle upper bound, the closed loop's encoding budget, the
+//! eval.json schema, and the demo end to end on a tiny budget (the CI smoke test).
+
+use procl::control::{LatentPdPolicy, PdController, Policy};
+use procl::data::{CollectConfig, collect};
+use procl::envs::EnvKind;
+use procl::eval::{ReachConfig, evaluate_oracle, evaluate_run, reach_tasks, run_episode};
+use procl::model::cpu_device;
+use procl::train::{Method, Preset, RunPaths, TrainConfig, train};
+
+#[test]
+fn oracle_reaches_every_goal_in_every_env() {
+    for env in [EnvKind::PointMass, EnvKind::Reacher] {
+        let mut protocol = ReachConfig::for_env(env, 7);
+        protocol.episodes = 10;
+        let oracle = evaluate_oracle(env, &protocol).unwrap();
+        assert_eq!(
+            oracle.success_rate, 1.0,
+            "{env}: {:?}",
+            oracle.final_distances
+        );
+        assert_eq!(oracle.per_step_mean.len(), protocol.horizon + 1);
+        // Distances start large and end far below the threshold.
+        assert!(oracle.per_step_mean[0] > 10.0 * protocol.success_threshold);
+        assert!(oracle.final_mean < 0.1 * protocol.success_threshold);
+    }
+}
+
+#[test]
+fn closed_loop_encodes_each_frame_once() {
+    let env = EnvKind::PointMass;
+    let device = cpu_device();
+    let config = TrainConfig::preset(Preset::Procl, Method::Procl, env);
+    let model = config.model.init(0, &device).unwrap();
+    let mut policy = LatentPdPolicy::new(
+        model.encoder,
+        device,
+        PdController { kp: 10.0, kd: 2.0 },
+        0.02,
+    );
+    let protocol = ReachConfig {
+        episodes: 2,
+        horizon: 25,
+        ..ReachConfig::for_env(env, 3)
+    };
+    let tasks = reach_tasks(env, &protocol);
+    for (start, goal) in &tasks {
+        let record = run_episode(
+            env,
+            &mut policy as &mut dyn Policy,
+            start,
+            goal,
+            protocol.horizon,
+            false,
+        )
+        .unwrap();
+        assert_eq!(record.distances.len(), protocol.horizon + 1);
+        assert_eq!(record.latents.len(), protocol.horizon);
+    }
+    // Per episode: the goal image once, then one new frame per control step.
+    assert_eq!(policy.frames_encoded, tasks.len() * (1 + protocol.horizon));
+    assert_eq!(policy.control_times_s.len(), tasks.len() * protocol.horizon);
+    // Same start and goal: the same actions, so the same record (deterministic closed loop).
+    let again = run_episode(
+        env,
+        &mut policy as &mut dyn Policy,
+        &tasks[0].0,
+        &tasks[0].1,
+        protocol.horizon,
+        false,
+    )
+    .unwrap();
+    let first = run_episode(
+        env,
+        &mut policy as &mut dyn Policy,
+        &tasks[0].0,
+        &tasks[0].1,
+        protocol.horizon,
+        false,
+    )
+    .unwrap();
+    assert_eq!(again.distances, first.distances);
+}
+
+#[test]
+fn eval_writes_the_documented_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let env = EnvKind::PointMass;
+    let data = collect(
+        &CollectConfig {
+            transitions: 120,
+            episode_len: 40,
+            ..CollectConfig::new(env, 1)
+        },
+        |_| {},
+    )
+    .unwrap();
+    let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, env);
+    (
+        config.steps,
+        config.batch_size,
+        config.checkpoint_every,
+        config.orientation_search_every,
+    ) = (2, 8, 2, 1);
+    config.model.encoder.trunk_channels = [4, 4];
+    let run = RunPaths::new(dir.path().join("run"));
+    train(&config, &data, &run, false, &cpu_device(), |_, _| {}).unwrap();
+    let protocol = ReachConfig {
+        episodes: 2,
+        horizon: 12,
+        ..ReachConfig::for_env(env, 4)
+    };
+    let report = evaluate_run(&run, &protocol, |_| {}).unwrap();
+    for file in ["eval.json", "reach.png", "latent_traj.png", "episode.gif"] {
+        assert!(run.dir.join(file).exists(), "{file} missing");
+    }
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.dir.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(json["env"], "point-mass");
+    assert_eq!(json["protocol"]["episodes"], 2);
+    let methods = json["methods"].as_array().unwrap();
+    assert_eq!(methods.len(), 2);
+    for (m, summary) in methods.iter().zip(&report.methods) {
+        for key in [
+            "method",
+            "per_step_mean",
+            "per_step_std",
+            "final_distances",
+            "final_mean",
+            "final_std",
+            "success_rate",
+        ] {
+            assert!(m.get(key).is_some(), "eval.json lacks {key}");
+        }
+        assert_eq!(
+            m["per_step_mean"].as_array().unwrap().len(),
+            protocol.horizon + 1
+        );
+        assert_eq!(m["success_rate"].as_f64().unwrap(), summary.success_rate);
+    }
+    // Latent PD is timed, the oracle is not.
+    assert!(methods[0]["control_time_us_p50"].as_f64().unwrap() > 0.0);
+    assert!(methods[1]["control_time_us_p50"].is_null());
+}
+
+#[test]
+fn demo_quick_runs_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_procl"))
+        .args(["demo", "--quick", "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    for needle in ["ProCL + PD", "PC3 + PD", "oracle PD", "report:"] {
+        assert!(stdout.contains(needle), "summary lacks {needle}: {stdout}");
+    }
+    for file in [
+        "report.html",
+        "summary.json",
+        "reach_all.png",
+        "point-mass.npz",
+        "procl/latent_map.png",
+        "pc3/eval.json",
+    ] {
+        assert!(out.join(file).exists(), "{file} missing");
+    }
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("reach_all.png") && html.contains("procl/episode.gif"));
+    // A second run reuses every stage (nothing retrained) and gives the same table.
+    let again = std::process::Command::new(env!("CARGO_BIN_EXE_procl"))
+        .args(["demo", "--quick", "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let again_stdout = String::from_utf8_lossy(&again.stdout);
+    assert!(
+        again_stdout.contains("reusing trained procl"),
+        "{again_stdout}"
+    );
+}
