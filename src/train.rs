@@ -421,7 +421,13 @@ pub fn train(
         truncate_metrics(&run.metrics(), start)?;
     } else {
         if run.checkpoint().exists() {
-            return Err(Error::WouldClobber(run.checkpoint()));
+            return Err(Error::config(
+                "out",
+                format!(
+                    "{} already holds a trained model; pass --resume to continue it, or choose another --out",
+                    run.dir.display()
+                ),
+            ));
         }
         let json = serde_json::to_string_pretty(config)
             .map_err(|e| Error::config("config", e.to_string()))?;

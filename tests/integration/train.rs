@@ -206,7 +206,10 @@ fn same_config_and_seed_give_identical_checkpoints() {
     )
     .unwrap_err()
     .to_string();
-    assert!(err.contains("already exists"), "{err}");
+    assert!(
+        err.contains("already holds a trained model") && err.contains("--resume"),
+        "{err}"
+    );
 }
 
 #[test]
