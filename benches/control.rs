@@ -34,7 +34,7 @@ fn control_step(c: &mut Criterion) {
             q: vec![0.0; 2],
             qd: vec![0.0; 2],
         };
-        policy.reset(&frame);
+        policy.reset(&frame, &state);
         let mut u = [0.0; 2];
         group.bench_function(format!("{preset:?}").to_lowercase(), |b| {
             pool.install(|| b.iter(|| policy.act(std::hint::black_box(&frame), &state, &mut u)))

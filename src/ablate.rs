@@ -179,12 +179,7 @@ fn write_summary(
     protocol: &ReachConfig,
 ) -> Result<PathBuf> {
     let json_path = out.join("ablation.json");
-    let json = serde_json::to_string_pretty(results)
-        .map_err(|e| Error::config("ablation", e.to_string()))?;
-    crate::write_atomically(&json_path, true, |w| {
-        w.write_all(json.as_bytes())
-            .map_err(|e| Error::io(&json_path, e))
-    })?;
+    crate::fsutil::write_json(&json_path, results)?;
     let mut md = format!(
         "# Ablation\n\n{} episodes per seed, {} steps, success = final distance < {} {}.\n\n\
          | cell | seeds | success mean | success min-max | final distance | R^2 | det(q->h) > 0 | train s |\n|---|---|---|---|---|---|---|---|\n",

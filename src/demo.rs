@@ -215,11 +215,7 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
         protocol,
     };
     let json_path = config.out.join("summary.json");
-    let json =
-        serde_json::to_string_pretty(&result).map_err(|e| Error::config("demo", e.to_string()))?;
-    crate::write_atomically(&json_path, true, |w| {
-        std::io::Write::write_all(w, json.as_bytes()).map_err(|e| Error::io(&json_path, e))
-    })?;
+    crate::fsutil::write_json(&json_path, &result)?;
     Ok(result)
 }
 

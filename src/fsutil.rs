@@ -53,3 +53,13 @@ pub fn write_atomically<T>(
     }
     result
 }
+
+/// Writes `value` as pretty-printed JSON to `path` atomically, replacing any existing file
+/// (used for the outputs procl owns: config.json, eval.json, diagnostics, summaries).
+pub fn write_json<T: serde::Serialize + ?Sized>(path: &Path, value: &T) -> Result<()> {
+    let json = serde_json::to_string_pretty(value)
+        .map_err(|e| Error::config(path.display().to_string(), e.to_string()))?;
+    write_atomically(path, true, |w| {
+        w.write_all(json.as_bytes()).map_err(|e| Error::io(path, e))
+    })
+}

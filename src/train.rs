@@ -429,12 +429,7 @@ pub fn train(
                 ),
             ));
         }
-        let json = serde_json::to_string_pretty(config)
-            .map_err(|e| Error::config("config", e.to_string()))?;
-        crate::write_atomically(&run.config(), true, |w| {
-            w.write_all(json.as_bytes())
-                .map_err(|e| Error::io(run.config(), e))
-        })?;
+        crate::fsutil::write_json(&run.config(), config)?;
         let header = format!("step,{},seconds\n", LOSS_NAMES.join(","));
         std::fs::write(run.metrics(), header).map_err(|e| Error::io(run.metrics(), e))?;
     }

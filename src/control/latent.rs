@@ -11,8 +11,9 @@ use crate::model::{Encoder, frames_to_tensor, to_vec};
 
 /// A controller in the closed loop: sees the frame (and, for the oracle only, the true state).
 pub trait Policy {
-    /// Starts an episode toward the goal image.
-    fn reset(&mut self, goal_frame: &[u8]);
+    /// Starts an episode toward the goal image (`goal` is the true goal state, for the oracle
+    /// only, as `act`'s `state` is).
+    fn reset(&mut self, goal_frame: &[u8], goal: &State);
     /// The action for the newest frame; `u` has the action dimension.
     fn act(&mut self, frame: &[u8], state: &State, u: &mut [f64]);
     /// The latent configuration `h` of the last frame seen (empty for the oracle).
@@ -63,7 +64,7 @@ impl LatentPdPolicy {
 }
 
 impl Policy for LatentPdPolicy {
-    fn reset(&mut self, goal_frame: &[u8]) {
+    fn reset(&mut self, goal_frame: &[u8], _goal: &State) {
         self.h_goal = self.encode(goal_frame);
         self.h_prev = None;
     }
@@ -99,16 +100,16 @@ pub struct OraclePdPolicy {
 }
 
 impl OraclePdPolicy {
-    pub fn new(pd: PdController, goal_config: Vec<f64>) -> Self {
-        Self {
-            pd,
-            goal: goal_config,
-        }
+    /// The goal comes with each episode's `reset`.
+    pub fn new(pd: PdController) -> Self {
+        Self { pd, goal: vec![] }
     }
 }
 
 impl Policy for OraclePdPolicy {
-    fn reset(&mut self, _goal_frame: &[u8]) {}
+    fn reset(&mut self, _goal_frame: &[u8], goal: &State) {
+        self.goal = goal.q.clone();
+    }
     fn act(&mut self, _frame: &[u8], state: &State, u: &mut [f64]) {
         let zeros = vec![0.0; state.q.len()];
         self.pd.control(&state.q, &state.qd, &self.goal, &zeros, u);

@@ -99,7 +99,7 @@ pub fn run_episode(
     };
     let mut u = vec![0.0; sim.action_dim()];
     let mut state = sim.state();
-    policy.reset(&goal_frame);
+    policy.reset(&goal_frame, goal);
     record.goal_latent = policy.goal_latent();
     for step in 0..=horizon {
         record
@@ -201,22 +201,21 @@ pub fn summarise(
     }
 }
 
-/// Runs every task with a fresh policy from `make_policy(goal)`; returns the records and the
-/// control times the policies reported through `times`.
+/// Runs every task with `policy` (reset per episode, so a latent policy's encoder is built
+/// once), recording the frames of the first episode if `record_first`.
 pub fn evaluate_reach(
     env: EnvKind,
     config: &ReachConfig,
-    mut make_policy: impl FnMut(&State) -> Box<dyn Policy>,
+    policy: &mut dyn Policy,
     record_first: bool,
     mut progress: impl FnMut(usize),
 ) -> crate::Result<Vec<EpisodeRecord>> {
     let tasks = reach_tasks(env, config);
     let mut records = Vec::with_capacity(tasks.len());
     for (k, (start, goal)) in tasks.iter().enumerate() {
-        let mut policy = make_policy(goal);
         records.push(run_episode(
             env,
-            policy.as_mut(),
+            policy,
             start,
             goal,
             config.horizon,

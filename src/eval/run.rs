@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use super::plots::{save_episode_gif, save_latent_plot, save_reach_plot};
 use super::reach::{MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise};
-use crate::control::{LatentPdPolicy, OraclePdPolicy, PdController, Policy, oracle_gains};
-use crate::error::{Error, Result};
+use crate::control::{LatentPdPolicy, OraclePdPolicy, PdController, oracle_gains};
+use crate::error::Result;
 use crate::model::cpu_device;
 use crate::train::{Method, RunPaths};
 
@@ -37,11 +37,7 @@ pub fn write_diagnostics(run: &RunPaths) -> Result<super::LatentDiagnostics> {
     let png = run.dir.join("latent_map.png");
     let diagnostics = super::latent_diagnostics(config.env, &model.encoder, &device, Some(&png))?;
     let path = run.dir.join("diagnostics.json");
-    let json = serde_json::to_string_pretty(&diagnostics)
-        .map_err(|e| Error::config("diagnostics", e.to_string()))?;
-    crate::write_atomically(&path, true, |w| {
-        std::io::Write::write_all(w, json.as_bytes()).map_err(|e| Error::io(&path, e))
-    })?;
+    crate::fsutil::write_json(&path, &diagnostics)?;
     Ok(diagnostics)
 }
 
@@ -51,7 +47,7 @@ pub fn evaluate_oracle(env: crate::envs::EnvKind, protocol: &ReachConfig) -> Res
     let records = evaluate_reach(
         env,
         protocol,
-        |goal| Box::new(OraclePdPolicy::new(gains, goal.q.clone())),
+        &mut OraclePdPolicy::new(gains),
         false,
         |_| {},
     )?;
@@ -74,21 +70,8 @@ pub fn evaluate_run(
     };
     let dt = env.make().control_dt_s();
     let mut policy = LatentPdPolicy::new(model.encoder, device, pd, dt);
-    let mut times = vec![];
-    let mut records = vec![];
-    // One policy is reused across episodes (reset per episode), so the encoder is loaded once.
-    for (k, (start, goal)) in super::reach::reach_tasks(env, protocol).iter().enumerate() {
-        records.push(super::reach::run_episode(
-            env,
-            &mut policy as &mut dyn Policy,
-            start,
-            goal,
-            protocol.horizon,
-            k == 0,
-        )?);
-        times.append(&mut policy.control_times_s);
-        progress(k + 1);
-    }
+    let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
+    let times = std::mem::take(&mut policy.control_times_s);
     let label = match config.method {
         Method::Procl => "ProCL + PD",
         Method::Pc3 => "PC3 + PD",
@@ -101,11 +84,7 @@ pub fn evaluate_run(
         methods: vec![latent, oracle],
     };
     let out = EvalOutputs::in_run(run);
-    let json =
-        serde_json::to_string_pretty(&report).map_err(|e| Error::config("eval", e.to_string()))?;
-    crate::write_atomically(&out.json, true, |w| {
-        std::io::Write::write_all(w, json.as_bytes()).map_err(|e| Error::io(&out.json, e))
-    })?;
+    crate::fsutil::write_json(&out.json, &report)?;
     let title = format!("{env}: goal reaching over {} episodes", protocol.episodes);
     save_reach_plot(
         &out.reach_png,
