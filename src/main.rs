@@ -282,6 +282,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     v.total, v.cpc, v.cons, v.curv, v.lyap
                 );
             }
+            let d = procl::eval::write_diagnostics(&run)?;
+            println!(
+                "latent: linear R^2 of q from h = {:.3}, det(q -> h map) = {} (latent_map.png, diagnostics.json)",
+                d.linear_r2,
+                d.config_to_latent_det
+                    .map_or("-".into(), |x| format!("{x:.3}"))
+            );
         }
         Command::Eval {
             run,

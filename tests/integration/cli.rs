@@ -50,6 +50,31 @@ fn collect_render_info_and_bad_input() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    let run = dir.path().join("run");
+    let out = procl(&[
+        "train",
+        "--data",
+        path_str(&npz),
+        "--out",
+        path_str(&run),
+        "--steps",
+        "2",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("linear R^2"));
+    for file in [
+        "config.json",
+        "model.safetensors",
+        "metrics.csv",
+        "latent_map.png",
+        "diagnostics.json",
+    ] {
+        assert!(run.join(file).exists(), "train did not write {file}");
+    }
     let info = procl(&["info", "--data", path_str(&npz)]);
     assert!(String::from_utf8_lossy(&info.stdout).contains("point-mass"));
 
