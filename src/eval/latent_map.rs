@@ -196,28 +196,10 @@ fn save_latent_map(
     let ranges = env.make().config_ranges();
     let side = (configs.len() as f64).sqrt().round() as usize;
     super::plots::render_png(path, (640, 640), |root| {
-        let xs = latents.iter().map(|h| h[0]);
-        let ys = latents.iter().map(|h| h.get(1).copied().unwrap_or(0.0));
-        let (x0, x1) = xs.fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(x), b.max(x)));
-        let (y0, y1) = ys.fold((f64::MAX, f64::MIN), |(a, b), y| (a.min(y), b.max(y)));
-        let pad = 0.05 * (x1 - x0).max(y1 - y0).max(1e-9);
-        let mut chart = ChartBuilder::on(root)
-            .caption(
-                format!("latent map of {env}: h coloured by true configuration"),
-                ("sans-serif", 18),
-            )
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d((x0 - pad)..(x1 + pad), (y0 - pad)..(y1 + pad))
-            .map_err(|e| e.to_string())?;
-        chart
-            .configure_mesh()
-            .x_desc("h[0]")
-            .y_desc("h[1]")
-            .draw()
-            .map_err(|e| e.to_string())?;
+        let title = format!("latent map of {env}: h coloured by true configuration");
         let point = |k: usize| (latents[k][0], latents[k].get(1).copied().unwrap_or(0.0));
+        let mut chart =
+            super::plots::latent_plane_chart(root, &title, (0..latents.len()).map(point))?;
         for k in 0..configs.len() {
             for next in [k + 1, k + side] {
                 let same_row = next != k + 1 || (k + 1) % side != 0;

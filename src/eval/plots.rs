@@ -4,6 +4,7 @@
 use std::path::Path;
 use std::sync::Once;
 
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::{FontStyle, register_font as plotters_register_font};
 
@@ -160,6 +161,42 @@ pub fn save_reach_plot(
     })
 }
 
+/// A chart over the latent plane `(h[0], h[1])`.
+pub(crate) type LatentChart<'a, 'b> =
+    ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// Builds a latent-plane chart padded 5% around the finite `points` (the unit square when there
+/// are none) and draws its axes.
+pub(crate) fn latent_plane_chart<'a, 'b>(
+    root: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
+    title: &str,
+    points: impl Iterator<Item = (f64, f64)>,
+) -> std::result::Result<LatentChart<'a, 'b>, String> {
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for (x, y) in points.filter(|(x, y)| x.is_finite() && y.is_finite()) {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    if x0 > x1 {
+        (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
+    }
+    let pad = 0.05 * (x1 - x0).max(y1 - y0).max(1e-6);
+    let mut chart = ChartBuilder::on(root)
+        .caption(title, ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d((x0 - pad)..(x1 + pad), (y0 - pad)..(y1 + pad))
+        .map_err(|e| e.to_string())?;
+    chart
+        .configure_mesh()
+        .x_desc("h[0]")
+        .y_desc("h[1]")
+        .label_style(("sans-serif", 13))
+        .draw()
+        .map_err(|e| e.to_string())?;
+    Ok(chart)
+}
+
 /// PD trajectories in the latent plane (first two dimensions of `h`): start (circle), path,
 /// goal latent (cross), for up to `max_episodes` episodes.
 pub fn save_latent_plot(
@@ -169,36 +206,13 @@ pub fn save_latent_plot(
     max_episodes: usize,
 ) -> Result<()> {
     render_png(path, (640, 640), |root| {
-        let points: Vec<(f64, f64)> = episodes
+        let points = episodes
             .iter()
             .take(max_episodes)
             .flat_map(|e| e.latents.iter().chain(std::iter::once(&e.goal_latent)))
             .filter(|h| h.len() >= 2)
-            .map(|h| (h[0], h[1]))
-            .filter(|(x, y)| x.is_finite() && y.is_finite())
-            .collect();
-        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-        for &(x, y) in &points {
-            (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
-        }
-        if points.is_empty() {
-            (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
-        }
-        let pad = 0.05 * (x1 - x0).max(y1 - y0).max(1e-6);
-        let mut chart = ChartBuilder::on(root)
-            .caption(title, ("sans-serif", 20))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d((x0 - pad)..(x1 + pad), (y0 - pad)..(y1 + pad))
-            .map_err(|e| e.to_string())?;
-        chart
-            .configure_mesh()
-            .x_desc("h[0]")
-            .y_desc("h[1]")
-            .label_style(("sans-serif", 13))
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .map(|h| (h[0], h[1]));
+        let mut chart = latent_plane_chart(root, title, points)?;
         for (k, e) in episodes.iter().take(max_episodes).enumerate() {
             let color = PALETTE[k % PALETTE.len()];
             let line: Vec<(f64, f64)> = e
