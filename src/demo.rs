@@ -136,8 +136,10 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
         }
         if config.tiny_model {
             train_config.model.encoder.trunk_channels = [8, 8];
-            train_config.model.encoder.head =
-                crate::model::EncoderHead::SoftArgmax { keypoints: 4 };
+            train_config.model.encoder.head = crate::model::EncoderHead::SoftArgmax {
+                keypoints: 4,
+                hidden: 0,
+            };
         }
         let finished = run.checkpoint().exists()
             && run.load_config().ok().as_ref() == Some(&train_config)

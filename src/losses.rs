@@ -42,6 +42,12 @@ pub struct LossConfig {
     pub lyapunov_dt_s: Option<f64>,
     /// Stop gradients through the hindsight targets `h*`, `v*`.
     pub detach_targets: bool,
+    /// Divide the risk by the batch mean of `V(z_t - z*)` (held constant in the gradient), so
+    /// it no longer falls with the latent's scale. Unnormalised (the paper), the risk grows as
+    /// the square of the latent's scale and is lowered most cheaply by shrinking the latent,
+    /// which works against CPC; on the fast reacher that ends in collapse.
+    #[serde(default)]
+    pub normalise_risk: bool,
 }
 
 impl Default for LossConfig {
@@ -61,6 +67,7 @@ impl Default for LossConfig {
             q_v: 0.1,
             lyapunov_dt_s: None,
             detach_targets: false,
+            normalise_risk: false,
         }
     }
 }
@@ -199,7 +206,8 @@ fn lyapunov_value(h: Tensor<2>, v: Tensor<2>, q_h: f64, q_v: f64) -> Tensor<1> {
 }
 
 /// Latent PD-control Lyapunov risk (paper eqs. 7, 10):
-/// `mean max(0, (V(z_{t+1} - z*) - V(z_t - z*)) / dt_R)`.
+/// `mean max(0, (V(z_{t+1} - z*) - V(z_t - z*)) / dt_R)`, divided by the constant
+/// `mean V(z_t - z*)` when `normalise` (see [`LossConfig::normalise_risk`]).
 #[allow(clippy::too_many_arguments)]
 pub fn lyapunov_risk(
     z_now: (Tensor<2>, Tensor<2>),
@@ -208,11 +216,18 @@ pub fn lyapunov_risk(
     q_h: f64,
     q_v: f64,
     dt_r: f64,
+    normalise: bool,
 ) -> Tensor<1> {
     let (h_star, v_star) = z_target;
     let before = lyapunov_value(z_now.0 - h_star.clone(), z_now.1 - v_star.clone(), q_h, q_v);
     let after = lyapunov_value(z_next.0 - h_star, z_next.1 - v_star, q_h, q_v);
-    relu((after - before) / dt_r).mean().reshape([1])
+    let risk = relu((after - before.clone()) / dt_r).mean().reshape([1]);
+    if normalise {
+        // A tiny floor keeps a collapsed batch finite.
+        risk / before.detach().mean().clamp_min(1e-12).reshape([1])
+    } else {
+        risk
+    }
 }
 
 /// The encodings of one batch of samples `(i_{t-1}, i_t, u_t, i_{t+1})` and the random draws
@@ -363,6 +378,7 @@ pub fn procl_loss(
         config.q_h,
         config.q_v,
         dt_r,
+        config.normalise_risk,
     );
 
     let pc3 = cpc.clone() * config.lambda_cpc
@@ -520,6 +536,7 @@ mod tests {
             q_h,
             q_v,
             dt_r,
+            false,
         );
         assert_eq!(scalar(contracting), 0.0);
         // Row 0 expands, row 1 contracts. By hand, target h* = (0.5, 0.5), v* = 0 for row 0:
@@ -534,9 +551,34 @@ mod tests {
             q_h,
             q_v,
             dt_r,
+            false,
         );
         let got = scalar(expanding);
         assert!((got - 52.5).abs() < 1e-3, "risk {got}");
+        // Normalised: divided by the mean V(z_now - z*) = (0.6 + 2) / 2 = 1.3 -> 40.3846.
+        let normalised = lyapunov_risk(
+            pair(&[1.0, 0.0, 1.0, 1.0], &[0.0, 1.0, 0.0, 0.0]),
+            pair(&[2.0, 0.0, 0.5, 0.5], &[1.0, 1.0, 0.0, 0.0]),
+            pair(&[0.5, 0.5, 0.0, 0.0], &[0.0; 4]),
+            q_h,
+            q_v,
+            dt_r,
+            true,
+        );
+        let got = scalar(normalised);
+        assert!((got - 52.5 / 1.3).abs() < 1e-3, "normalised risk {got}");
+        // ... and does not change when the whole latent is scaled by 3 (V scales by 9 in both).
+        let x3 = |v: &[f32]| v.iter().map(|x| 3.0 * x).collect::<Vec<f32>>();
+        let scaled = lyapunov_risk(
+            pair(&x3(&[1.0, 0.0, 1.0, 1.0]), &x3(&[0.0, 1.0, 0.0, 0.0])),
+            pair(&x3(&[2.0, 0.0, 0.5, 0.5]), &x3(&[1.0, 1.0, 0.0, 0.0])),
+            pair(&x3(&[0.5, 0.5, 0.0, 0.0]), &[0.0; 4]),
+            q_h,
+            q_v,
+            dt_r,
+            true,
+        );
+        assert!((scalar(scaled) - got).abs() < 1e-3);
     }
 
     /// The dynamics' parameters read out to f64 by path (`fc1.weight` is `[in, out]`).

@@ -208,6 +208,15 @@ impl RunPaths {
     }
 }
 
+/// Frames for the data-dependent latent-scale initialisation: 256 drawn from a stream of
+/// `seed` that training batches never use.
+fn scale_frames(data: &Dataset, seed: u64, device: &Device) -> Tensor<4> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(u64::MAX);
+    let picks = sample_batch(data, &mut rng, 256);
+    frames_to_tensor(picks.iter().map(|&(e, t)| data.frame(e, t)), device)
+}
+
 /// A training sample `(i_{t-1}, i_t, u_t, i_{t+1})` is addressed by (episode, t), 1 <= t < T.
 fn sample_batch(data: &Dataset, rng: &mut ChaCha8Rng, n: usize) -> Vec<(usize, usize)> {
     (0..n)
@@ -351,6 +360,7 @@ impl OrientationSearch {
                 loss.q_h,
                 loss.q_v,
                 loss.lyapunov_dt_s.unwrap_or(dt),
+                loss.normalise_risk,
             );
             self.sums[k] += crate::model::to_vec(risk)
                 .first()
@@ -428,6 +438,11 @@ pub fn train(
                     run.dir.display()
                 ),
             ));
+        }
+        if let Some(target_std) = config.model.encoder.init_latent_std {
+            model.encoder = model
+                .encoder
+                .normalise_latent_scale(scale_frames(data, config.seed, device), target_std);
         }
         crate::fsutil::write_json(&run.config(), config)?;
         let header = format!("step,{},seconds\n", LOSS_NAMES.join(","));

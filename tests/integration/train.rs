@@ -33,7 +33,10 @@ fn tiny_config(steps: u64, checkpoint_every: u64) -> TrainConfig {
     config.batch_size = 16;
     config.checkpoint_every = checkpoint_every;
     config.model.encoder.trunk_channels = [8, 8];
-    config.model.encoder.head = EncoderHead::SoftArgmax { keypoints: 8 };
+    config.model.encoder.head = EncoderHead::SoftArgmax {
+        keypoints: 8,
+        hidden: 0,
+    };
     config.model.dynamics.hidden = 32;
     // The procl preset searches the latent orientation every 50 steps, which must divide
     // checkpoint_every; search at every checkpoint instead.
