@@ -94,6 +94,37 @@ enum Command {
         #[arg(long)]
         horizon: Option<usize>,
     },
+    /// Generate demonstration trajectories (smooth paths followed by the oracle) for tracking.
+    Demonstrate {
+        /// Environment: point-mass | reacher.
+        #[arg(long)]
+        env: String,
+        /// Path family: circle | figure-eight | spline.
+        #[arg(long, default_value = "circle")]
+        shape: String,
+        /// Number of demonstrations (each a different random path).
+        #[arg(long, default_value_t = 4)]
+        episodes: usize,
+        /// Control steps per demonstration (one loop of a circle or figure-eight).
+        #[arg(long, default_value_t = 500)]
+        steps: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Output .npz file (the dataset layout).
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long)]
+        force: bool,
+    },
+    /// Track demonstrations with a trained run's latent PD (and the oracle): track.json, track.png.
+    Track {
+        /// Run folder written by `procl train`.
+        #[arg(long)]
+        run: PathBuf,
+        /// Demonstrations written by `procl demonstrate`.
+        #[arg(long)]
+        demo: PathBuf,
+    },
     /// Latent diagnostics of a trained run: latent_map.png and the R^2 of q from h.
     Diagnose {
         #[arg(long)]
@@ -315,6 +346,67 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 "wrote eval.json, reach.png, latent_traj.png, episode.gif in {}",
                 run.display()
             );
+        }
+        Command::Demonstrate {
+            env,
+            shape,
+            episodes,
+            steps,
+            seed,
+            out,
+            force,
+        } => {
+            let env: EnvKind = env.parse()?;
+            let shape: procl::data::PathShape = shape.parse()?;
+            procl::check_writable(&out, force)?;
+            let config = procl::data::ReferenceConfig {
+                episodes,
+                steps,
+                ..procl::data::ReferenceConfig::new(env, shape, seed)
+            };
+            let data = procl::data::generate_reference(&config, |_| {})?;
+            data.save(&out, force)?;
+            println!(
+                "wrote {} ({episodes} {} demonstrations x {steps} steps of {env}, seed {seed})",
+                out.display(),
+                shape.name()
+            );
+        }
+        Command::Track { run, demo } => {
+            let paths = RunPaths::new(&run);
+            let bar = progress_bar(0, "track");
+            let report = procl::eval::track_run(&paths, &demo, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })?;
+            bar.finish_and_clear();
+            println!(
+                "{}: {} demonstrations ({}) x {} steps; error = distance to the reference ({})",
+                report.env,
+                report.demonstrations,
+                report.source,
+                report.steps,
+                report.distance_unit
+            );
+            println!(
+                "{:<26} {:>12} {:>12} {:>12} {:>18}",
+                "method", "mean error", "rms error", "final error", "control p50/p99 us"
+            );
+            for m in &report.methods {
+                let s = &m.per_step;
+                println!(
+                    "{:<26} {:>12.4} {:>12.4} {:>12.4} {:>18}",
+                    s.method,
+                    m.mean_error,
+                    m.rms_error,
+                    s.final_mean,
+                    match (s.control_time_us_p50, s.control_time_us_p99) {
+                        (Some(a), Some(b)) => format!("{a:.0}/{b:.0}"),
+                        _ => "-".into(),
+                    }
+                );
+            }
+            println!("wrote track.json, track.png in {}", run.display());
         }
         Command::Diagnose { run } => {
             let d = procl::eval::write_diagnostics(&RunPaths::new(&run))?;

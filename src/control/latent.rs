@@ -9,11 +9,23 @@ use super::PdController;
 use crate::envs::State;
 use crate::model::{Encoder, frames_to_tensor, to_vec};
 
+/// A tracking target for the next action: the reference's latent `(h*, v*)` for latent
+/// policies, its true state for the oracle.
+pub struct Target<'a> {
+    pub h: &'a [f64],
+    pub v: &'a [f64],
+    pub state: &'a State,
+}
+
 /// A controller in the closed loop: sees the frame (and, for the oracle only, the true state).
 pub trait Policy {
     /// Starts an episode toward the goal image (`goal` is the true goal state, for the oracle
-    /// only, as `act`'s `state` is).
+    /// only, as `act`'s `state` is): the target is the goal at rest.
     fn reset(&mut self, goal_frame: &[u8], goal: &State);
+    /// Starts a tracking episode (forgets the previous frame); targets come from `set_target`.
+    fn start_tracking(&mut self);
+    /// Sets the target of the next `act` (tracking).
+    fn set_target(&mut self, target: &Target<'_>);
     /// The action for the newest frame; `u` has the action dimension.
     fn act(&mut self, frame: &[u8], state: &State, u: &mut [f64]);
     /// The latent configuration `h` of the last frame seen (empty for the oracle).
@@ -22,13 +34,15 @@ pub trait Policy {
     fn goal_latent(&self) -> Vec<f64>;
 }
 
-/// PD on the learned latent: `h = e(frame)`, `v = (h - h_prev)/dt`, goal `h* = e(goal)`, `v* = 0`.
+/// PD on the learned latent: `h = e(frame)`, `v = (h - h_prev)/dt`; for reaching the target is
+/// `h* = e(goal)`, `v* = 0`, for tracking the reference's encoding and its finite difference.
 pub struct LatentPdPolicy {
     encoder: Encoder,
     device: Device,
     pd: PdController,
     dt: f64,
-    h_goal: Vec<f64>,
+    h_target: Vec<f64>,
+    v_target: Vec<f64>,
     /// Encoding of the previous frame (`None` at the start of an episode).
     h_prev: Option<Vec<f64>>,
     h: Vec<f64>,
@@ -45,7 +59,8 @@ impl LatentPdPolicy {
             device,
             pd,
             dt,
-            h_goal: vec![],
+            h_target: vec![],
+            v_target: vec![],
             h_prev: None,
             h: vec![],
             frames_encoded: 0,
@@ -65,8 +80,20 @@ impl LatentPdPolicy {
 
 impl Policy for LatentPdPolicy {
     fn reset(&mut self, goal_frame: &[u8], _goal: &State) {
-        self.h_goal = self.encode(goal_frame);
+        self.h_target = self.encode(goal_frame);
+        self.v_target = vec![0.0; self.h_target.len()];
         self.h_prev = None;
+    }
+
+    fn start_tracking(&mut self) {
+        self.h_prev = None;
+    }
+
+    fn set_target(&mut self, target: &Target<'_>) {
+        self.h_target.clear();
+        self.h_target.extend_from_slice(target.h);
+        self.v_target.clear();
+        self.v_target.extend_from_slice(target.v);
     }
 
     fn act(&mut self, frame: &[u8], _state: &State, u: &mut [f64]) {
@@ -78,8 +105,7 @@ impl Policy for LatentPdPolicy {
             Some(prev) => h.iter().zip(prev).map(|(a, b)| (a - b) / self.dt).collect(),
             None => vec![0.0; h.len()],
         };
-        let zeros = vec![0.0; h.len()];
-        self.pd.control(&h, &v, &self.h_goal, &zeros, u);
+        self.pd.control(&h, &v, &self.h_target, &self.v_target, u);
         self.h_prev = Some(h.clone());
         self.h = h;
         self.control_times_s.push(start.elapsed().as_secs_f64());
@@ -89,30 +115,44 @@ impl Policy for LatentPdPolicy {
         self.h.clone()
     }
     fn goal_latent(&self) -> Vec<f64> {
-        self.h_goal.clone()
+        self.h_target.clone()
     }
 }
 
 /// PD on the true state: the upper bound any latent controller is measured against.
 pub struct OraclePdPolicy {
     pd: PdController,
-    goal: Vec<f64>,
+    target: State,
 }
 
 impl OraclePdPolicy {
     /// The goal comes with each episode's `reset`.
     pub fn new(pd: PdController) -> Self {
-        Self { pd, goal: vec![] }
+        Self {
+            pd,
+            target: State {
+                q: vec![],
+                qd: vec![],
+            },
+        }
     }
 }
 
 impl Policy for OraclePdPolicy {
     fn reset(&mut self, _goal_frame: &[u8], goal: &State) {
-        self.goal = goal.q.clone();
+        self.target = State {
+            q: goal.q.clone(),
+            qd: vec![0.0; goal.q.len()],
+        };
+    }
+    fn start_tracking(&mut self) {}
+    fn set_target(&mut self, target: &Target<'_>) {
+        self.target = target.state.clone();
     }
     fn act(&mut self, _frame: &[u8], state: &State, u: &mut [f64]) {
-        let zeros = vec![0.0; state.q.len()];
-        self.pd.control(&state.q, &state.qd, &self.goal, &zeros, u);
+        let target = &self.target;
+        self.pd
+            .control(&state.q, &state.qd, &target.q, &target.qd, u);
     }
     fn latent(&self) -> Vec<f64> {
         vec![]

@@ -3,7 +3,7 @@
 
 mod latent;
 
-pub use latent::{LatentPdPolicy, OraclePdPolicy, Policy};
+pub use latent::{LatentPdPolicy, OraclePdPolicy, Policy, Target};
 
 /// PD control `u = Kp (h* - h) + Kd (v* - v)` with diagonal gains, clipped to [-1, 1].
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]

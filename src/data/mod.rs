@@ -1,7 +1,9 @@
-//! Datasets: seeded random-control collection, the NPZ store, and training-sample batching.
+//! Datasets: seeded random-control collection, demonstration paths for tracking, the NPZ store.
 
 mod collect;
+mod reference;
 mod store;
 
 pub use collect::{CollectConfig, collect};
+pub use reference::{PathShape, ReferenceConfig, generate_reference};
 pub use store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta};

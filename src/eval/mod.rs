@@ -1,16 +1,21 @@
-//! Evaluation: the goal-reaching protocol (spec.md 4), its metrics, plots and animations.
+//! Evaluation: the goal-reaching protocol (spec.md 4), trajectory tracking, their metrics,
+//! plots and animations.
 
 mod latent_map;
 mod plots;
 mod reach;
 mod run;
+mod track;
 
 pub use latent_map::{
     LatentDiagnostics, config_grid, encode_configs, latent_diagnostics, linear_fit,
 };
-pub use plots::{register_font, save_episode_gif, save_latent_plot, save_reach_plot};
+pub use plots::{
+    register_font, save_episode_gif, save_latent_plot, save_reach_plot, save_track_plot,
+};
 pub use reach::{
     EpisodeRecord, MethodSummary, ReachConfig, ReachReport, evaluate_reach, reach_tasks,
     run_episode, summarise,
 };
 pub use run::{EvalOutputs, evaluate_oracle, evaluate_run, write_diagnostics};
+pub use track::{Reference, TrackReport, TrackSummary, track_episode, track_run};

@@ -71,6 +71,25 @@ pub fn save_reach_plot(
     unit: &str,
 ) -> Result<()> {
     render_png(path, (900, 560), |root| {
+        let legend =
+            |m: &MethodSummary| format!("{} (success {:.0}%)", m.method, 100.0 * m.success_rate);
+        let y_desc = format!("distance to goal ({unit})");
+        distance_chart(root, title, methods, threshold, &y_desc, legend)
+    })
+}
+
+/// Per-step distance (mean line, +- std band, log y) of each method on `area`, with
+/// `threshold` dashed and each method's legend entry from `legend`.
+fn distance_chart(
+    area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    title: &str,
+    methods: &[MethodSummary],
+    threshold: f64,
+    y_desc: &str,
+    legend: impl Fn(&MethodSummary) -> String,
+) -> std::result::Result<(), String> {
+    {
+        let root = area;
         let steps = methods
             .iter()
             .map(|m| m.per_step_mean.len())
@@ -102,7 +121,7 @@ pub fn save_reach_plot(
         chart
             .configure_mesh()
             .x_desc("control step")
-            .y_desc(format!("distance to goal ({unit})"))
+            .y_desc(y_desc)
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| e.to_string())?;
@@ -132,7 +151,7 @@ pub fn save_reach_plot(
                 .iter()
                 .enumerate()
                 .map(|(t, a)| (t as f64, positive(*a)));
-            let label = format!("{} (success {:.0}%)", m.method, 100.0 * m.success_rate);
+            let label = legend(m);
             chart
                 .draw_series(LineSeries::new(line, color.stroke_width(2)))
                 .map_err(|e| e.to_string())?
@@ -158,10 +177,10 @@ pub fn save_reach_plot(
             .label_font(("sans-serif", 14))
             .draw()
             .map_err(|e| e.to_string())
-    })
+    }
 }
 
-/// A chart over the latent plane `(h[0], h[1])`.
+/// A chart over a plane: the latent `(h[0], h[1])` or the configuration `(q[0], q[1])`.
 pub(crate) type LatentChart<'a, 'b> =
     ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
@@ -170,6 +189,16 @@ pub(crate) type LatentChart<'a, 'b> =
 pub(crate) fn latent_plane_chart<'a, 'b>(
     root: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
     title: &str,
+    points: impl Iterator<Item = (f64, f64)>,
+) -> std::result::Result<LatentChart<'a, 'b>, String> {
+    plane_chart(root, title, ("h[0]", "h[1]"), points)
+}
+
+/// A 2-D chart padded 5% around the finite `points`, with the given axis names.
+fn plane_chart<'a, 'b>(
+    root: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
+    title: &str,
+    (x_desc, y_desc): (&str, &str),
     points: impl Iterator<Item = (f64, f64)>,
 ) -> std::result::Result<LatentChart<'a, 'b>, String> {
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
@@ -189,8 +218,8 @@ pub(crate) fn latent_plane_chart<'a, 'b>(
         .map_err(|e| e.to_string())?;
     chart
         .configure_mesh()
-        .x_desc("h[0]")
-        .y_desc("h[1]")
+        .x_desc(x_desc)
+        .y_desc(y_desc)
         .label_style(("sans-serif", 13))
         .draw()
         .map_err(|e| e.to_string())?;
@@ -272,5 +301,81 @@ pub fn save_episode_gif(
     }
     crate::write_atomically(path, true, |w| {
         std::io::Write::write_all(w, &bytes).map_err(|e| Error::io(path, e))
+    })
+}
+
+/// Tracking figure: left, the reference and achieved paths in the configuration plane
+/// `(q[0], q[1])` of up to 4 demonstrations (reference black, latent PD coloured, oracle grey);
+/// right, the per-step tracking error of each method (mean +- std, log y).
+pub fn save_track_plot(
+    path: &Path,
+    title: &str,
+    references: &[Vec<Vec<f64>>],
+    latent_runs: &[EpisodeRecord],
+    oracle_runs: &[EpisodeRecord],
+    methods: &[super::track::TrackSummary],
+    protocol: &super::ReachConfig,
+) -> Result<()> {
+    const SHOWN: usize = 4;
+    let plane = |q: &Vec<f64>| (q[0], q.get(1).copied().unwrap_or(0.0));
+    render_png(path, (1400, 640), |root| {
+        let (left, right) = root.split_horizontally(640);
+        let points = references
+            .iter()
+            .take(SHOWN)
+            .chain(latent_runs.iter().take(SHOWN).map(|r| &r.configs))
+            .flatten()
+            .map(plane);
+        let mut chart = plane_chart(&left, title, ("q[0]", "q[1]"), points)?;
+        let draw = |chart: &mut LatentChart<'_, '_>, line: Vec<(f64, f64)>, style: ShapeStyle| {
+            chart
+                .draw_series(LineSeries::new(line, style))
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        };
+        for (k, reference) in references.iter().take(SHOWN).enumerate() {
+            let color = PALETTE[k % PALETTE.len()];
+            draw(
+                &mut chart,
+                reference.iter().map(plane).collect(),
+                BLACK.stroke_width(3),
+            )?;
+            if let Some(run) = oracle_runs.get(k) {
+                let grey = RGBColor(150, 150, 150).stroke_width(1);
+                draw(&mut chart, run.configs.iter().map(plane).collect(), grey)?;
+            }
+            if let Some(run) = latent_runs.get(k) {
+                draw(
+                    &mut chart,
+                    run.configs.iter().map(plane).collect(),
+                    color.stroke_width(2),
+                )?;
+                if let Some(start) = reference.first() {
+                    chart
+                        .draw_series(std::iter::once(Circle::new(
+                            plane(start),
+                            5,
+                            BLACK.filled(),
+                        )))
+                        .map_err(|e| e.to_string())?;
+                }
+            }
+        }
+        let summaries: Vec<MethodSummary> = methods.iter().map(|m| m.per_step.clone()).collect();
+        let legend = |m: &MethodSummary| {
+            let mean = methods
+                .iter()
+                .find(|t| t.per_step.method == m.method)
+                .map_or(f64::NAN, |t| t.mean_error);
+            format!("{} (mean error {mean:.4})", m.method)
+        };
+        distance_chart(
+            &right,
+            "tracking error per step (dashed: goal-reaching threshold)",
+            &summaries,
+            protocol.success_threshold,
+            &format!("distance to reference ({})", protocol.distance_unit),
+            legend,
+        )
     })
 }

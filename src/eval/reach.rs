@@ -67,6 +67,8 @@ pub fn reach_tasks(env: EnvKind, config: &ReachConfig) -> Vec<(State, State)> {
 pub struct EpisodeRecord {
     /// Distance to the goal configuration before each step and after the last (`horizon + 1`).
     pub distances: Vec<f64>,
+    /// True configuration `q` at the same steps.
+    pub configs: Vec<Vec<f64>>,
     /// Latent `h` at each step (empty for the oracle).
     pub latents: Vec<Vec<f64>>,
     pub goal_latent: Vec<f64>,
@@ -105,6 +107,7 @@ pub fn run_episode(
         record
             .distances
             .push(sim.config_distance(&state.q, &goal.q));
+        record.configs.push(state.q.clone());
         if record_frames {
             record.frames.push(frame);
         }

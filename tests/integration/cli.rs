@@ -134,3 +134,66 @@ fn collect_render_info_and_bad_input() {
     fails_with(&["info", "--data", path_str(&truncated)], "cut.npz");
     fails_with(&["info", "--data", "/definitely/missing.npz"], "not found");
 }
+
+#[test]
+fn demonstrate_and_track_reject_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let demo = dir.path().join("demo.npz");
+    fails_with(
+        &[
+            "demonstrate",
+            "--env",
+            "point-mass",
+            "--shape",
+            "square",
+            "--out",
+            path_str(&demo),
+        ],
+        "square",
+    );
+    fails_with(
+        &["demonstrate", "--env", "cartpole", "--out", path_str(&demo)],
+        "cartpole",
+    );
+    let out = procl(&[
+        "demonstrate",
+        "--env",
+        "point-mass",
+        "--episodes",
+        "1",
+        "--steps",
+        "20",
+        "--out",
+        path_str(&demo),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // An existing file is kept unless --force.
+    let before = std::fs::read(&demo).unwrap();
+    fails_with(
+        &[
+            "demonstrate",
+            "--env",
+            "point-mass",
+            "--seed",
+            "9",
+            "--out",
+            path_str(&demo),
+        ],
+        "already exists",
+    );
+    assert_eq!(std::fs::read(&demo).unwrap(), before);
+    fails_with(
+        &[
+            "track",
+            "--run",
+            path_str(&dir.path().join("no-run")),
+            "--demo",
+            path_str(&demo),
+        ],
+        "config.json",
+    );
+}

@@ -5,4 +5,5 @@ mod control;
 mod data;
 mod envs;
 mod research;
+mod track;
 mod train;

@@ -1,0 +1,243 @@
+//! Trajectory tracking: latent PD follows a demonstration's frames (their encodings and
+//! finite-difference latent velocities), the oracle follows its true states; the error is the
+//! distance to the reference configuration at every step.
+
+use std::path::{Path, PathBuf};
+
+use burn::tensor::Device;
+
+use super::plots::save_track_plot;
+use super::reach::{EpisodeRecord, MethodSummary, ReachConfig, summarise};
+use crate::control::{LatentPdPolicy, OraclePdPolicy, PdController, Policy, Target, oracle_gains};
+use crate::data::Dataset;
+use crate::envs::{EnvKind, FRAME_BYTES, State};
+use crate::error::{Error, Result};
+use crate::model::{Encoder, cpu_device, frames_to_tensor, to_vec};
+use crate::train::{Method, RunPaths};
+
+/// The reference of one demonstration: per frame `t`, the true state and (for latent policies)
+/// `h*_t = e(frame_t)` and `v*_t = (h*_t - h*_{t-1}) / dt`, the same finite difference that
+/// defines the latent velocity `v` (at `t = 0` the forward difference stands in).
+pub struct Reference {
+    pub states: Vec<State>,
+    pub frames: Vec<Vec<u8>>,
+    pub h: Vec<Vec<f64>>,
+    pub v: Vec<Vec<f64>>,
+}
+
+impl Reference {
+    /// The reference of `episode` in `demo`, without latents (for the oracle).
+    pub fn from_demo(demo: &Dataset, episode: usize) -> Self {
+        let dq = demo.config_dim();
+        let frames = (0..=demo.steps())
+            .map(|t| demo.frame(episode, t).to_vec())
+            .collect();
+        let states = (0..=demo.steps())
+            .map(|t| {
+                let row: Vec<f64> = (0..2 * dq)
+                    .map(|i| demo.states[[episode, t, i]] as f64)
+                    .collect();
+                State {
+                    q: row[..dq].to_vec(),
+                    qd: row[dq..].to_vec(),
+                }
+            })
+            .collect();
+        Self {
+            states,
+            frames,
+            h: vec![],
+            v: vec![],
+        }
+    }
+
+    /// Encodes every reference frame once (one batch) and differences the encodings.
+    pub fn encode(&mut self, encoder: &Encoder, device: &Device, dt: f64) {
+        let batch = frames_to_tensor(self.frames.iter().map(Vec::as_slice), device);
+        let [n, du] = [self.frames.len(), encoder.latent_dim()];
+        let flat = to_vec(encoder.forward(batch));
+        self.h = (0..n)
+            .map(|t| {
+                flat[t * du..(t + 1) * du]
+                    .iter()
+                    .map(|&x| x as f64)
+                    .collect()
+            })
+            .collect();
+        self.v = (0..n)
+            .map(|t| {
+                let (a, b) = if t == 0 {
+                    (1.min(n - 1), 0)
+                } else {
+                    (t, t - 1)
+                };
+                self.h[a]
+                    .iter()
+                    .zip(&self.h[b])
+                    .map(|(x, y)| (x - y) / dt)
+                    .collect()
+            })
+            .collect();
+    }
+}
+
+/// Runs `policy` along `reference` from its first state. The action at step `t` aims at the
+/// reference at `t + 1` (the state that action produces), as the demonstrator's did.
+pub fn track_episode(
+    env: EnvKind,
+    policy: &mut dyn Policy,
+    reference: &Reference,
+) -> Result<EpisodeRecord> {
+    let mut sim = env.make();
+    let steps = reference.states.len() - 1;
+    sim.set_state(&reference.states[0])?;
+    let mut frame = [0u8; FRAME_BYTES];
+    let mut u = vec![0.0; sim.action_dim()];
+    let mut record = EpisodeRecord::default();
+    policy.start_tracking();
+    let mut state = sim.state();
+    for t in 0..=steps {
+        let target_state = &reference.states[t];
+        record
+            .distances
+            .push(sim.config_distance(&state.q, &target_state.q));
+        record.configs.push(state.q.clone());
+        if t == steps {
+            break;
+        }
+        sim.render(&mut frame);
+        let empty: &[f64] = &[];
+        policy.set_target(&Target {
+            h: reference.h.get(t + 1).map_or(empty, Vec::as_slice),
+            v: reference.v.get(t + 1).map_or(empty, Vec::as_slice),
+            state: &reference.states[t + 1],
+        });
+        policy.act(&frame, &state, &mut u);
+        let h = policy.latent();
+        if !h.is_empty() {
+            record.latents.push(h);
+        }
+        sim.step(&u);
+        state = sim.state();
+    }
+    Ok(record)
+}
+
+/// Tracking results of one method over all demonstrations.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrackSummary {
+    /// Per-step error (mean, std over demonstrations), final error, and the fraction of
+    /// demonstrations whose final error is under the env's goal-reaching threshold.
+    #[serde(flatten)]
+    pub per_step: MethodSummary,
+    /// Mean error over every step of every demonstration.
+    pub mean_error: f64,
+    /// Root mean square of the same.
+    pub rms_error: f64,
+    /// Largest error seen.
+    pub max_error: f64,
+}
+
+/// The `track.json` document.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrackReport {
+    pub env: EnvKind,
+    pub demo: PathBuf,
+    /// The demonstration file's `source` (e.g. `demonstration:circle`).
+    pub source: String,
+    pub demonstrations: usize,
+    pub steps: usize,
+    pub distance_unit: String,
+    pub methods: Vec<TrackSummary>,
+}
+
+fn summarise_tracking(
+    method: &str,
+    episodes: &[EpisodeRecord],
+    protocol: &ReachConfig,
+    control_times_s: &[f64],
+) -> TrackSummary {
+    let all: Vec<f64> = episodes
+        .iter()
+        .flat_map(|e| e.distances.iter().copied())
+        .collect();
+    let n = all.len().max(1) as f64;
+    TrackSummary {
+        per_step: summarise(method, episodes, protocol, control_times_s),
+        mean_error: all.iter().sum::<f64>() / n,
+        rms_error: (all.iter().map(|x| x * x).sum::<f64>() / n).sqrt(),
+        max_error: all.iter().copied().fold(0.0, f64::max),
+    }
+}
+
+/// Tracks every demonstration in `demo_path` with the run's latent PD (its training gains) and
+/// with the oracle, and writes `track.json` and `track.png` into the run folder. `progress`
+/// gets (demonstrations done, demonstrations in all).
+pub fn track_run(
+    run: &RunPaths,
+    demo_path: &Path,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<TrackReport> {
+    let device = cpu_device();
+    let (config, model) = run.load_model(&device)?;
+    let env = config.env;
+    let demo = Dataset::load(demo_path)?;
+    if demo.meta.env != env {
+        return Err(Error::dataset(
+            demo_path,
+            format!(
+                "holds {} demonstrations but the run {} controls {env}",
+                demo.meta.env,
+                run.dir.display()
+            ),
+        ));
+    }
+    let dt = env.make().control_dt_s();
+    let pd = PdController {
+        kp: config.loss.kp,
+        kd: config.loss.kd,
+    };
+    let mut latent_policy = LatentPdPolicy::new(model.encoder.clone(), device.clone(), pd, dt);
+    let mut oracle = OraclePdPolicy::new(oracle_gains(env));
+    let (mut latent_runs, mut oracle_runs, mut reference_paths) = (vec![], vec![], vec![]);
+    for episode in 0..demo.episodes() {
+        let mut reference = Reference::from_demo(&demo, episode);
+        oracle_runs.push(track_episode(env, &mut oracle, &reference)?);
+        reference.encode(&model.encoder, &device, dt);
+        let mut record = track_episode(env, &mut latent_policy, &reference)?;
+        record.goal_latent = reference.h.last().cloned().unwrap_or_default();
+        reference_paths.push(reference.states.iter().map(|s| s.q.clone()).collect());
+        latent_runs.push(record);
+        progress(episode + 1, demo.episodes());
+    }
+    let protocol = ReachConfig::for_env(env, 0);
+    let label = match config.method {
+        Method::Procl => "ProCL + PD",
+        Method::Pc3 => "PC3 + PD",
+    };
+    let times = std::mem::take(&mut latent_policy.control_times_s);
+    let report = TrackReport {
+        env,
+        demo: demo_path.to_path_buf(),
+        source: demo.meta.source.clone(),
+        demonstrations: demo.episodes(),
+        steps: demo.steps(),
+        distance_unit: protocol.distance_unit.clone(),
+        methods: vec![
+            summarise_tracking(label, &latent_runs, &protocol, &times),
+            summarise_tracking("oracle PD (true state)", &oracle_runs, &protocol, &[]),
+        ],
+    };
+    crate::fsutil::write_json(&run.dir.join("track.json"), &report)?;
+    let title = format!("{env}: tracking {} ({})", demo.meta.source, label);
+    save_track_plot(
+        &run.dir.join("track.png"),
+        &title,
+        &reference_paths,
+        &latent_runs,
+        &oracle_runs,
+        &report.methods,
+        &protocol,
+    )?;
+    Ok(report)
+}
