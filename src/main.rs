@@ -93,6 +93,13 @@ enum Command {
         /// Steps per episode (default: the env's protocol horizon).
         #[arg(long)]
         horizon: Option<usize>,
+        /// Controller on the latent: pd (the run's gains) | mpc (CEM through the learned
+        /// dynamics, horizon 10; writes eval-mpc.json, reach-mpc.png, ...).
+        #[arg(long, default_value = "pd")]
+        controller: String,
+        /// MPC planning horizon in steps.
+        #[arg(long, default_value_t = 10)]
+        mpc_horizon: usize,
     },
     /// Generate demonstration trajectories (smooth paths followed by the oracle) for tracking.
     Demonstrate {
@@ -326,7 +333,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             episodes,
             seed,
             horizon,
+            controller,
+            mpc_horizon,
         } => {
+            let controller = match controller.as_str() {
+                "pd" => procl::eval::Controller::Pd,
+                "mpc" => procl::eval::Controller::Mpc(procl::control::MpcConfig {
+                    horizon: mpc_horizon,
+                    ..Default::default()
+                }),
+                other => anyhow::bail!("invalid value for `--controller`: `{other}` (pd | mpc)"),
+            };
             let paths = RunPaths::new(&run);
             let config = paths.load_config()?;
             let mut protocol = ReachConfig::for_env(config.env, seed);
@@ -338,14 +355,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 protocol.horizon = h;
             }
             let bar = progress_bar(episodes as u64, "eval");
-            let report =
-                procl::eval::evaluate_run(&paths, &protocol, |k| bar.set_position(k as u64))?;
+            let report = procl::eval::evaluate_run_with(&paths, &protocol, &controller, |k| {
+                bar.set_position(k as u64)
+            })?;
             bar.finish_and_clear();
             print_report(&report);
-            println!(
-                "wrote eval.json, reach.png, latent_traj.png, episode.gif in {}",
-                run.display()
-            );
+            let out = procl::eval::EvalOutputs::for_controller(&paths, &controller);
+            let names: Vec<String> = [&out.json, &out.reach_png, &out.latent_png, &out.gif]
+                .iter()
+                .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+                .collect();
+            println!("wrote {} in {}", names.join(", "), run.display());
         }
         Command::Demonstrate {
             env,

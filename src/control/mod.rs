@@ -2,8 +2,10 @@
 //! one on camera frames.
 
 mod latent;
+mod mpc;
 
 pub use latent::{LatentPdPolicy, OraclePdPolicy, Policy, Target};
+pub use mpc::{LatentStep, MpcConfig, MpcPolicy, cem_plan};
 
 /// PD control `u = Kp (h* - h) + Kd (v* - v)` with diagonal gains, clipped to [-1, 1].
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]

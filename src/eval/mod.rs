@@ -17,5 +17,7 @@ pub use reach::{
     EpisodeRecord, MethodSummary, ReachConfig, ReachReport, evaluate_reach, reach_tasks,
     run_episode, summarise,
 };
-pub use run::{EvalOutputs, evaluate_oracle, evaluate_run, write_diagnostics};
+pub use run::{
+    Controller, EvalOutputs, evaluate_oracle, evaluate_run, evaluate_run_with, write_diagnostics,
+};
 pub use track::{Reference, TrackReport, TrackSummary, track_episode, track_run};

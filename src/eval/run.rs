@@ -5,7 +5,9 @@ use std::path::PathBuf;
 
 use super::plots::{save_episode_gif, save_latent_plot, save_reach_plot};
 use super::reach::{MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise};
-use crate::control::{LatentPdPolicy, OraclePdPolicy, PdController, oracle_gains};
+use crate::control::{
+    LatentPdPolicy, MpcConfig, MpcPolicy, OraclePdPolicy, PdController, oracle_gains,
+};
 use crate::error::Result;
 use crate::model::cpu_device;
 use crate::train::{Method, RunPaths};
@@ -19,14 +21,34 @@ pub struct EvalOutputs {
 }
 
 impl EvalOutputs {
+    /// The files of latent PD's evaluation (the run's own controller).
     pub fn in_run(run: &RunPaths) -> Self {
+        Self::for_controller(run, &Controller::Pd)
+    }
+
+    /// The files of `controller`'s evaluation: PD writes `eval.json`, ..., MPC `eval-mpc.json`,
+    /// ..., so evaluating one never overwrites the other.
+    pub fn for_controller(run: &RunPaths, controller: &Controller) -> Self {
+        let suffix = match controller {
+            Controller::Pd => "",
+            Controller::Mpc(_) => "-mpc",
+        };
         Self {
-            json: run.dir.join("eval.json"),
-            reach_png: run.dir.join("reach.png"),
-            latent_png: run.dir.join("latent_traj.png"),
-            gif: run.dir.join("episode.gif"),
+            json: run.dir.join(format!("eval{suffix}.json")),
+            reach_png: run.dir.join(format!("reach{suffix}.png")),
+            latent_png: run.dir.join(format!("latent_traj{suffix}.png")),
+            gif: run.dir.join(format!("episode{suffix}.gif")),
         }
     }
+}
+
+/// Which controller acts on the learned latent.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Controller {
+    /// PD with the training config's gains (ProCL's controller).
+    Pd,
+    /// CEM-MPC through the learned dynamics `g` (the run-time cost reference).
+    Mpc(MpcConfig),
 }
 
 /// Computes the latent diagnostics of a trained run and writes `latent_map.png` and
@@ -59,23 +81,44 @@ pub fn evaluate_oracle(env: crate::envs::EnvKind, protocol: &ReachConfig) -> Res
 pub fn evaluate_run(
     run: &RunPaths,
     protocol: &ReachConfig,
+    progress: impl FnMut(usize),
+) -> Result<ReachReport> {
+    evaluate_run_with(run, protocol, &Controller::Pd, progress)
+}
+
+/// As [`evaluate_run`] with the given controller on the latent.
+pub fn evaluate_run_with(
+    run: &RunPaths,
+    protocol: &ReachConfig,
+    controller: &Controller,
     mut progress: impl FnMut(usize),
 ) -> Result<ReachReport> {
     let device = cpu_device();
     let (config, model) = run.load_model(&device)?;
     let env = config.env;
-    let pd = PdController {
-        kp: config.loss.kp,
-        kd: config.loss.kd,
-    };
     let dt = env.make().control_dt_s();
-    let mut policy = LatentPdPolicy::new(model.encoder, device, pd, dt);
-    let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
-    let times = std::mem::take(&mut policy.control_times_s);
-    let label = match config.method {
-        Method::Procl => "ProCL + PD",
-        Method::Pc3 => "PC3 + PD",
+    let method = match config.method {
+        Method::Procl => "ProCL",
+        Method::Pc3 => "PC3",
     };
+    let (label, records, times) = match controller {
+        Controller::Pd => {
+            let pd = PdController {
+                kp: config.loss.kp,
+                kd: config.loss.kd,
+            };
+            let mut policy = LatentPdPolicy::new(model.encoder, device, pd, dt);
+            let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
+            (format!("{method} + PD"), records, policy.control_times_s)
+        }
+        Controller::Mpc(mpc) => {
+            let mut policy =
+                MpcPolicy::new(model.encoder, model.dynamics, device, mpc.clone(), dt)?;
+            let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
+            (format!("{method} + MPC"), records, policy.control_times_s)
+        }
+    };
+    let label = label.as_str();
     let latent = summarise(label, &records, protocol, &times);
     let oracle = evaluate_oracle(env, protocol)?;
     let report = ReachReport {
@@ -83,7 +126,7 @@ pub fn evaluate_run(
         protocol: protocol.clone(),
         methods: vec![latent, oracle],
     };
-    let out = EvalOutputs::in_run(run);
+    let out = EvalOutputs::for_controller(run, controller);
     crate::fsutil::write_json(&out.json, &report)?;
     let title = format!("{env}: goal reaching over {} episodes", protocol.episodes);
     save_reach_plot(

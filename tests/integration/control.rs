@@ -1,10 +1,13 @@
 //! Control and evaluation: the oracle upper bound, the closed loop's encoding budget, the
 //! eval.json schema, and the demo end to end on a tiny budget (the CI smoke test).
 
-use procl::control::{LatentPdPolicy, PdController, Policy};
+use procl::control::{LatentPdPolicy, MpcConfig, PdController, Policy};
 use procl::data::{CollectConfig, collect};
 use procl::envs::EnvKind;
-use procl::eval::{ReachConfig, evaluate_oracle, evaluate_run, reach_tasks, run_episode};
+use procl::eval::{
+    Controller, ReachConfig, evaluate_oracle, evaluate_run, evaluate_run_with, reach_tasks,
+    run_episode,
+};
 use procl::model::cpu_device;
 use procl::train::{Method, Preset, RunPaths, TrainConfig, train};
 
@@ -141,6 +144,27 @@ fn eval_writes_the_documented_outputs() {
     // Latent PD is timed, the oracle is not.
     assert!(methods[0]["control_time_us_p50"].as_f64().unwrap() > 0.0);
     assert!(methods[1]["control_time_us_p50"].is_null());
+
+    // MPC on the same latent writes its own files and leaves PD's alone.
+    let pd_json = std::fs::read(run.dir.join("eval.json")).unwrap();
+    let mpc = Controller::Mpc(MpcConfig {
+        samples: 16,
+        elites: 4,
+        iterations: 2,
+        ..MpcConfig::default()
+    });
+    let report = evaluate_run_with(&run, &protocol, &mpc, |_| {}).unwrap();
+    assert_eq!(report.methods[0].method, "ProCL + MPC");
+    assert!(report.methods[0].control_time_us_p50.unwrap() > 0.0);
+    for file in [
+        "eval-mpc.json",
+        "reach-mpc.png",
+        "latent_traj-mpc.png",
+        "episode-mpc.gif",
+    ] {
+        assert!(run.dir.join(file).exists(), "{file} missing");
+    }
+    assert_eq!(std::fs::read(run.dir.join("eval.json")).unwrap(), pd_json);
 }
 
 #[test]
