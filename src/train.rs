@@ -74,11 +74,25 @@ pub struct TrainConfig {
     /// [`crate::model::ProclModel::reorient_latent`]; must divide `checkpoint_every`.
     #[serde(default)]
     pub orientation_search_every: u64,
+    /// Ramp `lambda_R` linearly from 0 over this many steps (0: the full weight from step 1,
+    /// as the paper). The risk is lowest for a collapsed latent, so while CPC has not yet
+    /// spread the latent out, the risk can win the race and collapse it.
+    #[serde(default)]
+    pub risk_warmup_steps: u64,
     pub loss: LossConfig,
     pub model: ModelConfig,
 }
 
 impl TrainConfig {
+    /// The loss settings of step `step` (0-based): `lambda_R` ramped over the warm-up.
+    pub fn loss_at(&self, step: u64) -> LossConfig {
+        let mut loss = self.loss.clone();
+        if step < self.risk_warmup_steps {
+            loss.lambda_r *= (step + 1) as f64 / self.risk_warmup_steps as f64;
+        }
+        loss
+    }
+
     /// The configuration of `preset` for `method` on `env`.
     pub fn preset(preset: Preset, method: Method, env: EnvKind) -> Self {
         let du = env.make().action_dim();
@@ -92,6 +106,7 @@ impl TrainConfig {
             learning_rate: 1e-3,
             checkpoint_every: 500,
             orientation_search_every: 0,
+            risk_warmup_steps: 0,
             loss: LossConfig::default(),
             model: ModelConfig::for_action_dim(du),
         };
@@ -462,7 +477,8 @@ pub fn train(
         if let Some(search) = search.as_mut() {
             search.observe(&inputs, &config.loss, dt);
         }
-        let terms = procl_loss(&config.loss, &model.dynamics, inputs, dt);
+        let loss = config.loss_at(step);
+        let terms = procl_loss(&loss, &model.dynamics, inputs, dt);
         let values = terms.values();
         if !values.is_finite() {
             let kept = match (step / config.checkpoint_every) * config.checkpoint_every {
@@ -608,5 +624,22 @@ fn merge(base: &mut toml::Table, over: toml::Table) {
                 base.insert(key, value);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn risk_weight_ramps_over_the_warm_up() {
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
+        config.loss.lambda_r = 10.0;
+        assert_eq!(config.loss_at(0).lambda_r, 10.0);
+        config.risk_warmup_steps = 4;
+        let weights: Vec<f64> = (0..6).map(|s| config.loss_at(s).lambda_r).collect();
+        assert_eq!(weights, [2.5, 5.0, 7.5, 10.0, 10.0, 10.0]);
+        // Nothing else changes.
+        assert_eq!(config.loss_at(0).kp, config.loss.kp);
     }
 }
