@@ -48,6 +48,29 @@ pub struct LossConfig {
     /// which works against CPC; on the fast reacher that ends in collapse.
     #[serde(default)]
     pub normalise_risk: bool,
+    /// Variance floor against collapse (VICReg-style): adds
+    /// `variance_weight * mean_j max(0, floor - std_j(h))` over the batch's `h_t`, folded into
+    /// `total` (`None`: off, the paper). The Lyapunov risk is smallest for a collapsed latent;
+    /// where no PD-consistent latent is close (the reacher), it shrinks `h` instead of reshaping it.
+    #[serde(default)]
+    pub variance_floor: Option<f64>,
+    #[serde(default = "default_variance_weight")]
+    pub variance_weight: f64,
+}
+
+fn default_variance_weight() -> f64 {
+    10.0
+}
+
+/// `mean_j max(0, floor - std_j(h))` over the columns of `h [n, du]`.
+pub fn variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
+    let mean = h.clone().mean_dim(0);
+    let std = (h - mean)
+        .powi_scalar(2)
+        .mean_dim(0)
+        .add_scalar(1e-12)
+        .sqrt(); // [1, du]
+    relu(std.neg().add_scalar(floor)).mean().reshape([1])
 }
 
 impl Default for LossConfig {
@@ -68,6 +91,8 @@ impl Default for LossConfig {
             lyapunov_dt_s: None,
             detach_targets: false,
             normalise_risk: false,
+            variance_floor: None,
+            variance_weight: default_variance_weight(),
         }
     }
 }
@@ -86,6 +111,8 @@ impl LossConfig {
             ("loss.kd", self.kd),
             ("loss.q_h", self.q_h),
             ("loss.q_v", self.q_v),
+            ("loss.variance_weight", self.variance_weight),
+            ("loss.variance_floor", self.variance_floor.unwrap_or(0.0)),
         ];
         for (field, value) in non_negative {
             if !(value.is_finite() && value >= 0.0) {
@@ -321,6 +348,7 @@ pub fn procl_loss(
         curvature_noise,
         permutation,
     } = inputs;
+    let h_now_for_variance = h_now.clone();
     let v_now = (h_now.clone() - h_prev) / dt;
     let h_next_noisy = h_next.clone() + latent_noise * config.latent_noise_std;
     let v_next_noisy = (h_next_noisy.clone() - h_now.clone()) / dt;
@@ -384,7 +412,10 @@ pub fn procl_loss(
     let pc3 = cpc.clone() * config.lambda_cpc
         + cons.clone() * config.lambda_cons
         + curv.clone() * config.lambda_curv;
-    let total = pc3 * config.lambda_pc3 + lyap.clone() * config.lambda_r;
+    let mut total = pc3 * config.lambda_pc3 + lyap.clone() * config.lambda_r;
+    if let Some(floor) = config.variance_floor {
+        total = total + variance_hinge(h_now_for_variance, floor) * config.variance_weight;
+    }
     LossTerms {
         cpc,
         cons,
@@ -579,6 +610,17 @@ mod tests {
             true,
         );
         assert!((scalar(scaled) - got).abs() < 1e-3);
+    }
+
+    #[test]
+    fn variance_hinge_is_zero_above_the_floor_and_linear_below() {
+        let device = cpu_device();
+        // Columns: [0, 2] has std 1 (population), [0, 0.5] has std 0.25.
+        let h = t2(&[0.0, 0.0, 2.0, 0.5], 2, 2, &device);
+        // floor 1: max(0, 1 - 1) = 0 and 1 - 0.25 = 0.75 -> mean 0.375.
+        assert!((scalar(variance_hinge(h.clone(), 1.0)) - 0.375).abs() < 1e-5);
+        // floor 0.2: both columns above.
+        assert!(scalar(variance_hinge(h, 0.2)).abs() < 1e-6);
     }
 
     /// The dynamics' parameters read out to f64 by path (`fc1.weight` is `[in, out]`).

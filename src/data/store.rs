@@ -30,7 +30,7 @@ pub struct DatasetMeta {
     pub control_dt_s: f64,
     /// Seed the data was generated from.
     pub seed: u64,
-    /// How the actions were chosen: `random-control` or `demonstration`.
+    /// How the actions were chosen: `random-control` or `demonstration:<path shape>`.
     pub source: String,
     /// procl version that wrote the file.
     pub procl_version: String,
