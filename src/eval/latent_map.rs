@@ -21,8 +21,52 @@ pub struct LatentDiagnostics {
     /// The fitted map h ~ M q + c (rows: h dims), and det(M) for square maps.
     pub config_to_latent: Vec<Vec<f64>>,
     pub config_to_latent_det: Option<f64>,
+    /// R^2 of q from a leave-one-out 5-nearest-neighbour regression on h (averaged over
+    /// configuration dims): near 1 when h determines q, even through a curved map that the
+    /// linear R^2 scores low (the reacher's ring-shaped latents), near 0 when h forgets q.
+    #[serde(default)]
+    pub knn_r2: f64,
     /// Grid points encoded.
     pub points: usize,
+}
+
+/// Leave-one-out `k`-nearest-neighbour regression of `targets` from `inputs` (Euclidean in
+/// the inputs, ties broken by index), scored as R^2 per target dimension.
+pub fn knn_r2(inputs: &[Vec<f64>], targets: &[Vec<f64>], k: usize) -> Vec<f64> {
+    let n = inputs.len();
+    let dims = targets.first().map_or(0, Vec::len);
+    let mut predictions = vec![vec![0.0; dims]; n];
+    for (i, x) in inputs.iter().enumerate() {
+        let mut by_distance: Vec<(f64, usize)> = (0..n)
+            .filter(|&j| j != i)
+            .map(|j| {
+                let d: f64 = x.iter().zip(&inputs[j]).map(|(a, b)| (a - b).powi(2)).sum();
+                (d, j)
+            })
+            .collect();
+        by_distance.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let neighbours = &by_distance[..k.min(by_distance.len())];
+        for (d, p) in predictions[i].iter_mut().enumerate() {
+            *p = neighbours.iter().map(|&(_, j)| targets[j][d]).sum::<f64>()
+                / neighbours.len().max(1) as f64;
+        }
+    }
+    (0..dims)
+        .map(|d| {
+            let mean = targets.iter().map(|t| t[d]).sum::<f64>() / n.max(1) as f64;
+            let total: f64 = targets.iter().map(|t| (t[d] - mean).powi(2)).sum();
+            let residual: f64 = targets
+                .iter()
+                .zip(&predictions)
+                .map(|(t, p)| (t[d] - p[d]).powi(2))
+                .sum();
+            if total > 0.0 {
+                1.0 - residual / total
+            } else {
+                0.0
+            }
+        })
+        .collect()
 }
 
 /// Configurations on a `side x side` grid over the env's configuration box (at rest).
@@ -181,6 +225,10 @@ pub fn latent_diagnostics(
         linear_r2_per_dim: r2,
         config_to_latent: square,
         config_to_latent_det: det,
+        knn_r2: {
+            let r2 = knn_r2(&latents, &configs, 5);
+            r2.iter().sum::<f64>() / r2.len().max(1) as f64
+        },
         points: configs.len(),
     })
 }
@@ -224,4 +272,40 @@ fn save_latent_map(
             .map_err(|e| e.to_string())?;
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Points of a 20x20 grid over [0, 1]^2.
+    fn grid() -> Vec<Vec<f64>> {
+        (0..400)
+            .map(|k| vec![(k % 20) as f64 / 19.0, (k / 20) as f64 / 19.0])
+            .collect()
+    }
+
+    #[test]
+    fn knn_r2_sees_through_curved_maps_and_catches_forgotten_dims() {
+        let q = grid();
+        // A ring: angle from q0, radius from q1. Injective, far from linear.
+        let ring: Vec<Vec<f64>> = q
+            .iter()
+            .map(|c| {
+                let (angle, radius) = (4.0 * c[0], 1.0 + c[1]);
+                vec![radius * angle.cos(), radius * angle.sin()]
+            })
+            .collect();
+        let r2 = knn_r2(&ring, &q, 5);
+        assert!(r2.iter().all(|&x| x > 0.95), "{r2:?}");
+        let (_, linear) = linear_fit(&ring, &q);
+        assert!(
+            linear[1] < 0.5,
+            "the linear fit should miss the radius: {linear:?}"
+        );
+        // A latent that ignores q1 cannot predict it.
+        let forgetful: Vec<Vec<f64>> = q.iter().map(|c| vec![c[0], 0.0]).collect();
+        let r2 = knn_r2(&forgetful, &q, 5);
+        assert!(r2[0] > 0.95 && r2[1] < 0.05, "{r2:?}");
+    }
 }
