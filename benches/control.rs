@@ -1,9 +1,11 @@
 //! One latent PD control step from a 64x64 frame (encode the new frame + PD law), on one
-//! thread. Target (issue 5): <= 1 ms now, goal <= 0.3 ms. Weights are freshly initialised:
-//! the cost does not depend on their values.
+//! thread, and beside it one CEM-MPC step on the same latent (encode + plan through the
+//! learned dynamics, horizon 10): the run-time cost ratio ProCL is about. Target (issue 5):
+//! PD <= 1 ms now, goal <= 0.3 ms. Weights are freshly initialised: the cost does not depend on
+//! their values.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use procl::control::{LatentPdPolicy, PdController, Policy};
+use procl::control::{LatentPdPolicy, MpcConfig, MpcPolicy, PdController, Policy};
 use procl::envs::{EnvKind, FRAME_BYTES, State};
 use procl::model::{ModelConfig, cpu_device};
 use procl::train::{Method, Preset, TrainConfig};
@@ -20,6 +22,14 @@ fn control_step(c: &mut Criterion) {
             TrainConfig::preset(preset, Method::Procl, EnvKind::PointMass).model;
         let device = cpu_device();
         let model = config.init(0, &device).expect("model");
+        let mut mpc = MpcPolicy::new(
+            model.encoder.clone(),
+            model.dynamics,
+            device.clone(),
+            MpcConfig::default(),
+            0.02,
+        )
+        .expect("mpc");
         let mut policy = LatentPdPolicy::new(
             model.encoder,
             device,
@@ -35,9 +45,14 @@ fn control_step(c: &mut Criterion) {
             qd: vec![0.0; 2],
         };
         policy.reset(&frame, &state);
+        mpc.reset(&frame, &state);
         let mut u = [0.0; 2];
-        group.bench_function(format!("{preset:?}").to_lowercase(), |b| {
+        let name = format!("{preset:?}").to_lowercase();
+        group.bench_function(format!("{name}_pd"), |b| {
             pool.install(|| b.iter(|| policy.act(std::hint::black_box(&frame), &state, &mut u)))
+        });
+        group.bench_function(format!("{name}_mpc_h10"), |b| {
+            pool.install(|| b.iter(|| mpc.act(std::hint::black_box(&frame), &state, &mut u)))
         });
     }
     group.finish();
