@@ -1,5 +1,6 @@
 //! Environment throughput: one step + one 64x64 render per iteration, single thread.
-//! Targets (issue 2): point mass >= 20,000 frames/s, reacher >= 10,000 frames/s per core.
+//! Targets (issue 2): point mass >= 20,000 frames/s, reacher >= 10,000 frames/s per core;
+//! (issue 3) fetch >= 500 frames/s per core.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use procl::envs::{EnvKind, FRAME_BYTES};
@@ -7,7 +8,7 @@ use procl::envs::{EnvKind, FRAME_BYTES};
 fn step_and_render(c: &mut Criterion) {
     let mut group = c.benchmark_group("env_step_render");
     group.throughput(Throughput::Elements(1));
-    for kind in [EnvKind::PointMass, EnvKind::Reacher] {
+    for kind in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
         let mut env = kind.make();
         env.reset(0).expect("reset");
         let mut frame = [0u8; FRAME_BYTES];
@@ -17,7 +18,7 @@ fn step_and_render(c: &mut Criterion) {
                 // A slowly rotating action keeps the system moving without leaving the arena.
                 k = k.wrapping_add(1);
                 let phase = k as f64 * 0.01;
-                env.step(&[phase.sin(), phase.cos()]);
+                env.step(&[phase.sin(), phase.cos(), (0.7 * phase).sin()]);
                 env.render(&mut frame);
                 std::hint::black_box(&frame);
             })

@@ -28,12 +28,12 @@ struct Cli {
 enum Command {
     /// Collect a random-control dataset to an .npz file.
     Collect {
-        /// Environment: point-mass | reacher.
+        /// Environment: point-mass | reacher | fetch.
         #[arg(long)]
         env: String,
-        /// Number of transitions (default: spec.md 2's size for the env).
-        #[arg(long, default_value_t = 10_000)]
-        transitions: usize,
+        /// Number of transitions (default: spec.md 2's size for the env, 10,000; fetch 50,000).
+        #[arg(long)]
+        transitions: Option<usize>,
         /// Steps per episode.
         #[arg(long, default_value_t = 100)]
         episode_len: usize,
@@ -103,7 +103,7 @@ enum Command {
     },
     /// Generate demonstration trajectories (smooth paths followed by the oracle) for tracking.
     Demonstrate {
-        /// Environment: point-mass | reacher.
+        /// Environment: point-mass | reacher | fetch.
         #[arg(long)]
         env: String,
         /// Path family: circle | figure-eight | spline.
@@ -182,7 +182,7 @@ enum Command {
     },
     /// Render a strip of frames from a random episode to a PNG.
     Render {
-        /// Environment: point-mass | reacher.
+        /// Environment: point-mass | reacher | fetch.
         #[arg(long)]
         env: String,
         #[arg(long, default_value_t = 0)]
@@ -225,12 +225,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         } => {
             let env: EnvKind = env.parse()?;
             procl::check_writable(&out, force)?;
+            let defaults = CollectConfig::new(env, seed);
             let config = CollectConfig {
-                transitions,
+                transitions: transitions.unwrap_or(defaults.transitions),
                 episode_len,
-                ..CollectConfig::new(env, seed)
+                ..defaults
             };
-            let bar = progress_bar(transitions as u64, "collect");
+            let bar = progress_bar(config.transitions as u64, "collect");
             let data = collect(&config, |done| bar.set_position(done as u64))?;
             bar.finish_and_clear();
             data.save(&out, force)?;

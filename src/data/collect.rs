@@ -29,7 +29,10 @@ impl CollectConfig {
     pub fn new(env: EnvKind, seed: u64) -> Self {
         Self {
             env,
-            transitions: 10_000,
+            transitions: match env {
+                EnvKind::PointMass | EnvKind::Reacher => 10_000,
+                EnvKind::Fetch => 50_000,
+            },
             episode_len: 100,
             seed,
             max_hold_steps: 5,

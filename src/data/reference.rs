@@ -69,7 +69,7 @@ pub struct ReferenceConfig {
 }
 
 impl ReferenceConfig {
-    /// 4 demonstrations of 500 steps (10 s on both 2D envs).
+    /// 4 demonstrations of 500 steps (10 s on both 2D envs, 20 s on Fetch).
     pub fn new(env: EnvKind, shape: PathShape, seed: u64) -> Self {
         Self {
             env,
@@ -113,8 +113,11 @@ impl Path for Periodic {
         // (value, derivative wrt s) of each coordinate's waveform.
         let wave = |i: usize| match (self.shape, i) {
             (PathShape::Circle, 0) | (PathShape::FigureEight, 0) => (s.cos(), -s.sin()),
-            (PathShape::Circle, _) => (s.sin(), s.cos()),
-            _ => ((2.0 * s).sin(), 2.0 * (2.0 * s).cos()),
+            (PathShape::Circle, 1) => (s.sin(), s.cos()),
+            (PathShape::FigureEight, 1) => ((2.0 * s).sin(), 2.0 * (2.0 * s).cos()),
+            // A third dimension (Fetch's height) rises and falls once per loop at half the
+            // amplitude: the curve is the same in plan view, on a gently tilted plane.
+            _ => (0.5 * s.sin(), 0.5 * s.cos()),
         };
         (0..self.centre.len())
             .map(|i| {
@@ -291,14 +294,18 @@ mod tests {
 
     #[test]
     fn path_derivatives_match_finite_differences() {
-        let ranges = [[-0.3, 0.3], [-0.3, 0.3]];
-        for shape in [PathShape::Circle, PathShape::FigureEight, PathShape::Spline] {
-            let config = ReferenceConfig::new(EnvKind::PointMass, shape, 3);
-            let path = random_path(&config, &ranges, 0.02, 1);
-            for t in [0.13, 0.77, 1.5, 2.21, 3.9, 6.6, 9.1] {
-                let (_, slope) = path.at(t);
-                for (a, b) in slope.iter().zip(numeric_slope(path.as_ref(), t)) {
-                    assert!((a - b).abs() < 1e-5, "{shape:?} t={t}: {a} vs {b}");
+        let planar = vec![[-0.3, 0.3], [-0.3, 0.3]];
+        let spatial = vec![[-0.3, 0.3], [-0.3, 0.3], [0.4, 0.7]];
+        for ranges in [planar, spatial] {
+            for shape in [PathShape::Circle, PathShape::FigureEight, PathShape::Spline] {
+                let config = ReferenceConfig::new(EnvKind::PointMass, shape, 3);
+                let path = random_path(&config, &ranges, 0.02, 1);
+                for t in [0.13, 0.77, 1.5, 2.21, 3.9, 6.6, 9.1] {
+                    let (q, slope) = path.at(t);
+                    assert_eq!(q.len(), ranges.len());
+                    for (a, b) in slope.iter().zip(numeric_slope(path.as_ref(), t)) {
+                        assert!((a - b).abs() < 1e-5, "{shape:?} t={t}: {a} vs {b}");
+                    }
                 }
             }
         }
@@ -322,7 +329,7 @@ mod tests {
 
     #[test]
     fn paths_stay_inside_the_box() {
-        for env in [EnvKind::PointMass, EnvKind::Reacher] {
+        for env in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
             let ranges = env.make().config_ranges();
             for shape in [PathShape::Circle, PathShape::FigureEight, PathShape::Spline] {
                 let config = ReferenceConfig::new(env, shape, 7);

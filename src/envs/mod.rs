@@ -1,14 +1,25 @@
 //! Simulated pixel environments: one trait, one step loop, physics and rendering kept apart.
+//! Point mass and reacher are drawn top-down in 2D (`render2d`); Fetch is ray cast in 3D
+//! (`render3d`).
 
+mod fetch;
+mod fetch_arm;
 mod mujoco;
 mod point_mass;
 mod reacher;
 mod render2d;
+mod render3d;
 
+pub use fetch::{ARM_LABEL, Fetch, FetchConfig, GRIPPER_LABEL, TABLE_LABEL};
+pub use fetch_arm::{
+    ARM_JOINTS, ArmJoint, ArmPose, FETCH_ARM, GRIP_SITE_OFFSET_M, GRIPPER_DOWN, GRIPPER_OFFSET_M,
+    IkConfig, IkSolution, LinkFrame, RESET_Q, forward_kinematics,
+};
 pub use mujoco::SoftLimitModel;
 pub use point_mass::{PointMass, PointMassConfig};
 pub use reacher::{Reacher, ReacherConfig};
 pub use render2d::TopDownCamera;
+pub use render3d::{Lighting, Mat3, OrbitCamera, Picked, Vec3};
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -31,17 +42,20 @@ pub enum EnvKind {
     PointMass,
     /// Reacher-2D (dm_control `reacher` with NewtonianVAE's joint ranges).
     Reacher,
+    /// Fetch-3D (gym `FetchReach` with end-effector acceleration control).
+    Fetch,
 }
 
 impl EnvKind {
     /// Command-line names of all environments.
-    pub const NAMES: &'static [&'static str] = &["point-mass", "reacher"];
+    pub const NAMES: &'static [&'static str] = &["point-mass", "reacher", "fetch"];
 
     /// The command-line name.
     pub fn name(self) -> &'static str {
         match self {
             EnvKind::PointMass => "point-mass",
             EnvKind::Reacher => "reacher",
+            EnvKind::Fetch => "fetch",
         }
     }
 
@@ -50,6 +64,7 @@ impl EnvKind {
         match self {
             EnvKind::PointMass => Box::new(PointMass::new(PointMassConfig::default())),
             EnvKind::Reacher => Box::new(Reacher::new(ReacherConfig::default())),
+            EnvKind::Fetch => Box::new(Fetch::new(FetchConfig::default())),
         }
     }
 }
@@ -60,6 +75,7 @@ impl std::str::FromStr for EnvKind {
         match name {
             "point-mass" | "point_mass" | "pointmass" => Ok(EnvKind::PointMass),
             "reacher" => Ok(EnvKind::Reacher),
+            "fetch" | "fetch-3d" | "fetch-reach" => Ok(EnvKind::Fetch),
             other => Err(Error::UnknownEnv(other.to_string())),
         }
     }

@@ -69,12 +69,26 @@ pub fn knn_r2(inputs: &[Vec<f64>], targets: &[Vec<f64>], k: usize) -> Vec<f64> {
         .collect()
 }
 
-/// Configurations on a `side x side` grid over the env's configuration box (at rest).
+/// Configurations on a `side x side` grid over the first two dimensions of the env's
+/// configuration box (at rest). A third dimension (Fetch's height) steps through `side` levels
+/// along the grid's diagonals, so the linear fit sees it vary apart from the first two.
 pub fn config_grid(env: EnvKind, side: usize) -> Vec<Vec<f64>> {
     let ranges = env.make().config_ranges();
     let lerp = |r: [f64; 2], k: usize| r[0] + (r[1] - r[0]) * (k as f64 + 0.5) / side as f64;
     (0..side * side)
-        .map(|k| vec![lerp(ranges[0], k % side), lerp(ranges[1], k / side)])
+        .map(|k| {
+            let (i, j) = (k % side, k / side);
+            let level = |d: usize| match d {
+                0 => i,
+                1 => j,
+                _ => (i + j) % side,
+            };
+            ranges
+                .iter()
+                .enumerate()
+                .map(|(d, &r)| lerp(r, level(d)))
+                .collect()
+        })
         .collect()
 }
 

@@ -115,7 +115,9 @@ fn rollout(kind: EnvKind, seed: u64) -> (Vec<Vec<f64>>, Vec<Frame>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let (mut states, mut frames) = (vec![], vec![]);
     for _ in 0..50 {
-        let a = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+        let a: Vec<f64> = (0..env.action_dim())
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
         env.step(&a);
         let mut frame = [0u8; FRAME_BYTES];
         env.render(&mut frame);
@@ -127,7 +129,7 @@ fn rollout(kind: EnvKind, seed: u64) -> (Vec<Vec<f64>>, Vec<Frame>) {
 
 #[test]
 fn same_seed_same_states_and_pixels() {
-    for kind in [EnvKind::PointMass, EnvKind::Reacher] {
+    for kind in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
         let (s1, f1) = rollout(kind, 7);
         let (s2, f2) = rollout(kind, 7);
         assert_eq!(s1, s2);
@@ -263,4 +265,25 @@ fn bad_states_and_actions_are_handled() {
     assert_eq!(s.qd[0], 0.0);
     assert!((s.qd[1] - 0.00625).abs() < 1e-12);
     assert!("cartpole".parse::<EnvKind>().is_err());
+    // Every env rejects a wrong length and NaN, naming itself.
+    for kind in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
+        let mut env = kind.make();
+        let n = env.config_dim();
+        for bad in [
+            State {
+                q: vec![0.0; n + 1],
+                qd: vec![0.0; n],
+            },
+            State {
+                q: vec![f64::NAN; n],
+                qd: vec![0.0; n],
+            },
+        ] {
+            let err = env.set_state(&bad).unwrap_err().to_string();
+            assert!(err.contains(kind.name()), "{kind}: {err}");
+        }
+        // NaN actions are sanitised in every env.
+        env.step(&vec![f64::NAN; env.action_dim()]);
+        assert!(env.state().to_vec().iter().all(|x| x.is_finite()));
+    }
 }

@@ -1,9 +1,11 @@
-//! procl's integration tests, one binary: environments, datasets, the command line.
+//! procl's integration tests, one binary: environments (Fetch-3D in its own file), datasets,
+//! the command line.
 
 mod cli;
 mod control;
 mod data;
 mod envs;
+mod fetch;
 mod research;
 mod track;
 mod train;

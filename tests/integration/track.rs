@@ -58,7 +58,7 @@ fn demonstrations_are_seeded_files_in_the_dataset_layout() {
 
 #[test]
 fn the_oracle_follows_every_shape_in_every_env() {
-    for env in [EnvKind::PointMass, EnvKind::Reacher] {
+    for env in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
         for shape in [PathShape::Circle, PathShape::FigureEight, PathShape::Spline] {
             let demo = generate_reference(&small_reference(env, shape, 1), |_| {}).unwrap();
             // The reference moves: otherwise a tracker that stands still would score well.
