@@ -24,7 +24,7 @@ use crate::data::Dataset;
 use crate::error::{Error, Result};
 use crate::eval::{ReachConfig, evaluate_run, write_diagnostics};
 use crate::model::cpu_device;
-use crate::train::{RunPaths, config_from_table, train};
+use crate::train::{RunPaths, TrainConfig, config_from_table, train};
 
 /// A parsed grid.
 #[derive(Debug, Clone)]
@@ -83,6 +83,23 @@ impl Grid {
             cells: parsed,
         })
     }
+
+    /// The resolved training configuration of every cell for `env` (`[base]`, then the cell's
+    /// keys, over the preset), or the first cell that does not resolve, by name.
+    pub fn cell_configs(&self, env: crate::envs::EnvKind) -> Result<Vec<(String, TrainConfig)>> {
+        self.cells
+            .iter()
+            .map(|(name, cell)| {
+                let mut table = self.base.clone();
+                for (k, v) in cell {
+                    table.insert(k.clone(), v.clone());
+                }
+                config_from_table(table, env, None)
+                    .map(|config| (name.clone(), config))
+                    .map_err(|e| Error::config(format!("cell `{name}`"), e.to_string()))
+            })
+            .collect()
+    }
 }
 
 /// One trained and evaluated (cell, seed).
@@ -119,16 +136,7 @@ pub fn run_grid(
         .filter_map(|l| serde_json::from_str(l).ok())
         .collect();
     // Validate every cell before spending hours on the first one.
-    let mut configs = vec![];
-    for (name, cell) in &grid.cells {
-        let mut table = grid.base.clone();
-        for (k, v) in cell {
-            table.insert(k.clone(), v.clone());
-        }
-        let config = config_from_table(table, data.meta.env, None)
-            .map_err(|e| Error::config(format!("cell `{name}`"), e.to_string()))?;
-        configs.push((name.clone(), config));
-    }
+    let configs = grid.cell_configs(data.meta.env)?;
     for (name, base_config) in &configs {
         for seed in seeds.clone() {
             if !train_missing || done.iter().any(|r| &r.cell == name && r.seed == seed) {

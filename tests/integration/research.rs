@@ -178,3 +178,30 @@ loss = { lambda_r = 0.0 }
         "{err}"
     );
 }
+
+#[test]
+fn shipped_ablation_grids_resolve_for_their_envs() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("ablation");
+    for (file, env) in [
+        ("point-mass.toml", EnvKind::PointMass),
+        ("sharpness.toml", EnvKind::PointMass),
+        ("reacher.toml", EnvKind::Reacher),
+    ] {
+        let grid = procl::ablate::Grid::from_toml(&root.join(file)).unwrap();
+        let configs = grid
+            .cell_configs(env)
+            .unwrap_or_else(|e| panic!("{file}: {e}"));
+        assert_eq!(configs.len(), grid.cells.len());
+        assert!(configs.iter().all(|(_, c)| c.env == env));
+    }
+    // The reacher grid's variance-floor cells carry the floor through to the loss.
+    let grid = procl::ablate::Grid::from_toml(&root.join("reacher.toml")).unwrap();
+    let configs = grid.cell_configs(EnvKind::Reacher).unwrap();
+    let (_, floor) = configs
+        .iter()
+        .find(|(name, _)| name == "tanh-head_std1_floor=10_steps=1200")
+        .unwrap();
+    assert_eq!(floor.loss.variance_floor, Some(1.0));
+    assert_eq!(floor.steps, 1200);
+    assert_eq!(floor.model.encoder.init_latent_std, Some(1.0));
+}
