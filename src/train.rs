@@ -123,6 +123,10 @@ impl TrainConfig {
         if method == Method::Pc3 {
             config.loss.lambda_r = 0.0;
         }
+        if env == EnvKind::Fetch {
+            // spec.md 3: dt_R = 1 for Fetch (the env's control dt for the 2D envs).
+            config.loss.lyapunov_dt_s = Some(1.0);
+        }
         config
     }
 
@@ -386,6 +390,25 @@ impl OrientationSearch {
 
     /// Ends the window: the best candidate if it beats the current orientation by 10%, with
     /// the window's summed risks of the current orientation and the best.
+    /// Appends this window's summed risk of every candidate (in [`signed_permutations`]
+    /// order, candidate 0 the current orientation) to `path`, with a header on creation: the
+    /// evidence behind each decision, including the windows that changed nothing.
+    pub fn log_window(&self, path: &Path, step: u64) -> Result<()> {
+        let mut text = String::new();
+        if !path.exists() {
+            let names: Vec<String> = (0..self.sums.len()).map(|k| format!("c{k}")).collect();
+            text.push_str(&format!("step,{}\n", names.join(",")));
+        }
+        let sums: Vec<String> = self.sums.iter().map(|x| format!("{x:.6}")).collect();
+        text.push_str(&format!("{step},{}\n", sums.join(",")));
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .and_then(|mut f| f.write_all(text.as_bytes()))
+            .map_err(|e| Error::io(path, e))
+    }
+
     pub fn decide(&mut self) -> Option<(Vec<f32>, f64, f64)> {
         let best = (0..self.sums.len())
             .min_by(|&a, &b| self.sums[a].total_cmp(&self.sums[b]))
@@ -496,6 +519,11 @@ pub fn train(
         }
         let grads = terms.total.backward();
         model = adam.step(config.learning_rate, model, &grads);
+        if let Some(search) = search.as_mut()
+            && (step + 1) % config.orientation_search_every == 0
+        {
+            search.log_window(&run.dir.join("orientation_windows.csv"), step + 1)?;
+        }
         if let Some(search) = search.as_mut()
             && (step + 1) % config.orientation_search_every == 0
             && let Some((flip, identity, best)) = search.decide()
@@ -630,6 +658,16 @@ fn merge(base: &mut toml::Table, over: toml::Table) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fetch_uses_the_specs_lyapunov_dt() {
+        for preset in [Preset::Paper, Preset::Procl] {
+            let fetch = TrainConfig::preset(preset, Method::Procl, EnvKind::Fetch);
+            assert_eq!(fetch.loss.lyapunov_dt_s, Some(1.0));
+            let reacher = TrainConfig::preset(preset, Method::Procl, EnvKind::Reacher);
+            assert_eq!(reacher.loss.lyapunov_dt_s, None);
+        }
+    }
 
     #[test]
     fn risk_weight_ramps_over_the_warm_up() {

@@ -119,6 +119,13 @@ fn eval_writes_the_documented_outputs() {
     config.model.encoder.trunk_channels = [4, 4];
     let run = RunPaths::new(dir.path().join("run"));
     train(&config, &data, &run, false, &cpu_device(), |_, _| {}).unwrap();
+    // The search logs every window's risk per candidate: a header, then one line per window
+    // (every step here), the step and the 8 signed permutations of a 2-D latent.
+    let windows = std::fs::read_to_string(run.dir.join("orientation_windows.csv")).unwrap();
+    let lines: Vec<&str> = windows.lines().collect();
+    assert_eq!(lines.len(), 3, "{windows}");
+    assert!(lines[0].starts_with("step,c0,c1"));
+    assert!(lines[1..].iter().all(|l| l.split(',').count() == 9));
     let protocol = ReachConfig {
         episodes: 2,
         horizon: 12,
