@@ -4,6 +4,7 @@ mod cli;
 mod control;
 mod data;
 mod envs;
+mod nvae;
 mod research;
 mod track;
 mod train;
