@@ -113,6 +113,7 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
         let name = match method {
             Method::Procl => "procl",
             Method::Pc3 => "pc3",
+            Method::Nvae => "nvae",
         };
         let run = RunPaths::new(config.out.join(name));
         let mut train_config = TrainConfig::preset(Preset::Procl, method, env);

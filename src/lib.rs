@@ -16,6 +16,7 @@ pub mod envs;
 pub mod eval;
 pub mod losses;
 pub mod model;
+pub mod nvae;
 pub mod train;
 
 pub use checkpoint::{Adam, CheckpointMeta, load_checkpoint, save_checkpoint};

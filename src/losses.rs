@@ -310,23 +310,19 @@ impl LossValues {
 impl LossTerms {
     /// Reads every term back (one device sync).
     pub fn values(&self) -> LossValues {
-        let all = Tensor::cat(
-            vec![
-                self.total.clone(),
-                self.cpc.clone(),
-                self.cons.clone(),
-                self.curv.clone(),
-                self.lyap.clone(),
-            ],
-            0,
-        );
-        let v = crate::model::to_vec(all);
+        let v = crate::model::read_scalars(&[
+            &self.total,
+            &self.cpc,
+            &self.cons,
+            &self.curv,
+            &self.lyap,
+        ]);
         LossValues {
-            total: v[0] as f64,
-            cpc: v[1] as f64,
-            cons: v[2] as f64,
-            curv: v[3] as f64,
-            lyap: v[4] as f64,
+            total: v[0],
+            cpc: v[1],
+            cons: v[2],
+            curv: v[3],
+            lyap: v[4],
         }
     }
 }

@@ -53,12 +53,12 @@ enum Command {
         #[arg(long)]
         data: PathBuf,
     },
-    /// Train ProCL (or the PC3 baseline) on a dataset into a run folder.
+    /// Train ProCL (or the PC3 or NewtonianVAE baseline) on a dataset into a run folder.
     Train {
         /// The .npz dataset.
         #[arg(long)]
         data: PathBuf,
-        /// procl | pc3 (pc3 = lambda_R 0, same networks).
+        /// procl | pc3 | nvae (pc3 = lambda_R 0, same networks; nvae = NewtonianVAE).
         #[arg(long)]
         method: Option<String>,
         /// Run folder (config.json, model.safetensors, metrics.csv, diagnostics).
@@ -80,7 +80,8 @@ enum Command {
         #[arg(long, default_value = "cpu")]
         device: String,
     },
-    /// Evaluate goal reaching of a trained run (latent PD and the oracle on the same tasks).
+    /// Evaluate goal reaching of a trained run (its latent controller and the oracle on the same
+    /// tasks).
     Eval {
         /// Run folder written by `procl train`.
         #[arg(long)]
@@ -93,10 +94,11 @@ enum Command {
         /// Steps per episode (default: the env's protocol horizon).
         #[arg(long)]
         horizon: Option<usize>,
-        /// Controller on the latent: pd (the run's gains) | mpc (CEM through the learned
+        /// Controller on the latent (default: the method's own): pd (procl and pc3 runs, the
+        /// run's gains) | pid (nvae runs) | mpc (procl and pc3 runs: CEM through the learned
         /// dynamics, horizon 10; writes eval-mpc.json, reach-mpc.png, ...).
-        #[arg(long, default_value = "pd")]
-        controller: String,
+        #[arg(long)]
+        controller: Option<String>,
         /// MPC planning horizon in steps.
         #[arg(long, default_value_t = 10)]
         mpc_horizon: usize,
@@ -302,10 +304,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 procl::train::train(&config, &dataset, &run, resume, &device, |step, v| {
                     bar.set_position(step);
                     if step % 10 == 0 {
-                        bar.set_message(format!(
-                            "cpc {:.3} cons {:.2} curv {:.4} lyap {:.4}",
-                            v.cpc, v.cons, v.curv, v.lyap
-                        ));
+                        bar.set_message(v.to_string());
                     }
                 })?;
             bar.finish_and_clear();
@@ -316,10 +315,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 out.display()
             );
             if let Some(v) = summary.last {
-                println!(
-                    "final losses: total {:.4} cpc {:.4} cons {:.4} curv {:.5} lyap {:.5}",
-                    v.total, v.cpc, v.cons, v.curv, v.lyap
-                );
+                println!("final losses: {v}");
             }
             let d = procl::eval::write_diagnostics(&run)?;
             println!(
@@ -338,16 +334,25 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             controller,
             mpc_horizon,
         } => {
-            let controller = match controller.as_str() {
-                "pd" => procl::eval::Controller::Pd,
+            let paths = RunPaths::new(&run);
+            let config = paths.load_config()?;
+            let own = if config.method == Method::Nvae {
+                "pid"
+            } else {
+                "pd"
+            };
+            let controller = match controller.as_deref().unwrap_or(own) {
+                name if name == own => procl::eval::Controller::Feedback,
                 "mpc" => procl::eval::Controller::Mpc(procl::control::MpcConfig {
                     horizon: mpc_horizon,
                     ..Default::default()
                 }),
-                other => anyhow::bail!("invalid value for `--controller`: `{other}` (pd | mpc)"),
+                other => anyhow::bail!(
+                    "invalid value for `--controller`: `{other}` ({} runs: {own}{}, or leave it out)",
+                    config.method.label(),
+                    if own == "pd" { " or mpc" } else { "" }
+                ),
             };
-            let paths = RunPaths::new(&run);
-            let config = paths.load_config()?;
             let mut protocol = ReachConfig::for_env(config.env, seed);
             if episodes == 0 {
                 anyhow::bail!("--episodes must be at least 1");

@@ -1,10 +1,11 @@
-//! The training loop: one explicit function, seeded batches, per-term metrics, atomic
-//! checkpoints, `--resume`, and a clean stop on a non-finite loss.
+//! The training loop every method shares (ProCL, PC3, NewtonianVAE): seeded batches, per-term
+//! metrics, atomic checkpoints, `--resume`, and a clean stop on a non-finite loss.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
@@ -16,6 +17,7 @@ use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::losses::{LOSS_NAMES, LossConfig, LossInputs, LossValues, NoiseMode, procl_loss};
 use crate::model::{EncoderHead, ModelConfig, ProclModel, frames_to_tensor};
+use crate::nvae::{NvaeConfig, NvaeModel, NvaeObjective};
 
 /// Which objective to train.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -25,6 +27,19 @@ pub enum Method {
     Procl,
     /// PC3 alone: the same networks with `lambda_R = 0`.
     Pc3,
+    /// The NewtonianVAE baseline (its own networks, the `nvae` config table), PID-controlled.
+    Nvae,
+}
+
+impl Method {
+    /// The method's name in reports: ProCL, PC3, NewtonianVAE.
+    pub fn label(self) -> &'static str {
+        match self {
+            Method::Procl => "ProCL",
+            Method::Pc3 => "PC3",
+            Method::Nvae => "NewtonianVAE",
+        }
+    }
 }
 
 impl std::str::FromStr for Method {
@@ -33,9 +48,10 @@ impl std::str::FromStr for Method {
         match s {
             "procl" => Ok(Method::Procl),
             "pc3" => Ok(Method::Pc3),
+            "nvae" => Ok(Method::Nvae),
             other => Err(Error::config(
                 "method",
-                format!("unknown method `{other}` (expected procl or pc3)"),
+                format!("unknown method `{other}` (expected procl, pc3 or nvae)"),
             )),
         }
     }
@@ -50,6 +66,10 @@ pub enum Preset {
     /// procl's default: the best design found (docs/method.md).
     Procl,
 }
+
+/// The NewtonianVAE's default batch: each sample also decodes its three frames; at 64 a step
+/// took 0.6-1.0 s on the shared 2-core machine, about a ProCL step at 128.
+const NVAE_BATCH_SIZE: usize = 64;
 
 /// Everything a training run needs; written to the run folder as `config.json`.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -79,8 +99,13 @@ pub struct TrainConfig {
     /// spread the latent out, the risk can win the race and collapse it.
     #[serde(default)]
     pub risk_warmup_steps: u64,
+    /// ProCL's and PC3's losses and networks (unused by `nvae`).
     pub loss: LossConfig,
     pub model: ModelConfig,
+    /// The NewtonianVAE's networks, ELBO and PID (method `nvae` only; absent otherwise, so
+    /// the config.json of earlier runs still loads and compares equal).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nvae: Option<NvaeConfig>,
 }
 
 impl TrainConfig {
@@ -109,6 +134,7 @@ impl TrainConfig {
             risk_warmup_steps: 0,
             loss: LossConfig::default(),
             model: ModelConfig::for_action_dim(du),
+            nvae: None,
         };
         match preset {
             Preset::Paper => {
@@ -120,8 +146,16 @@ impl TrainConfig {
                 config.model.encoder.keypoint_sharpness = 30.0;
             }
         }
-        if method == Method::Pc3 {
-            config.loss.lambda_r = 0.0;
+        match method {
+            Method::Procl => {}
+            Method::Pc3 => config.loss.lambda_r = 0.0,
+            Method::Nvae => {
+                config.nvae = Some(NvaeConfig::for_action_dim(du));
+                // The search reorients ProCL's latent by its Lyapunov risk; the NewtonianVAE's
+                // orientation is the transition prior's business.
+                config.orientation_search_every = 0;
+                config.batch_size = NVAE_BATCH_SIZE;
+            }
         }
         if env == EnvKind::Fetch {
             // spec.md 3: dt_R = 1 for Fetch (the env's control dt for the 2D envs).
@@ -135,7 +169,7 @@ impl TrainConfig {
         if self.steps == 0 {
             return Err(Error::config("steps", "must be at least 1"));
         }
-        if self.batch_size < 2 {
+        if self.batch_size < 2 && self.method != Method::Nvae {
             return Err(Error::config(
                 "batch_size",
                 format!(
@@ -170,6 +204,33 @@ impl TrainConfig {
             return Err(Error::config("loss.lambda_r", "must be 0 for method pc3"));
         }
         let du = self.env.make().action_dim();
+        match (&self.nvae, self.method) {
+            (Some(nvae), Method::Nvae) => {
+                if nvae.latent_dim != du {
+                    return Err(Error::config(
+                        "nvae.latent_dim",
+                        format!("must equal the action dimension {du} of {}", self.env),
+                    ));
+                }
+                if self.orientation_search_every != 0 {
+                    return Err(Error::config(
+                        "orientation_search_every",
+                        "must be 0 for method nvae (the search is ProCL's)",
+                    ));
+                }
+                nvae.validate()?;
+            }
+            (None, Method::Nvae) => {
+                return Err(Error::config("nvae", "method nvae needs its [nvae] table"));
+            }
+            (Some(_), _) => {
+                return Err(Error::config(
+                    "nvae",
+                    format!("is for method nvae only, not {}", self.method.label()),
+                ));
+            }
+            (None, _) => {}
+        }
         if self.model.encoder.latent_dim != du {
             return Err(Error::config(
                 "model.encoder.latent_dim",
@@ -218,13 +279,54 @@ impl RunPaths {
             .map_err(|e| Error::config("run", format!("{}: {e}", path.display())))
     }
 
-    /// Rebuilds the trained model from `config.json` and the checkpoint.
-    pub fn load_model(&self, device: &Device) -> Result<(TrainConfig, ProclModel)> {
+    /// Rebuilds the trained model, of whichever method, from `config.json` and the checkpoint.
+    pub fn load_trained(&self, device: &Device) -> Result<(TrainConfig, TrainedModel)> {
         let config = self.load_config()?;
-        let model = config.model.init(config.seed, device)?;
-        let (model, _, _) = load_checkpoint(&self.checkpoint(), model, device)?;
+        let model = match (config.method, &config.nvae) {
+            (Method::Nvae, Some(nvae)) => {
+                let model = nvae.init(config.seed, device)?;
+                TrainedModel::Nvae(load_checkpoint(&self.checkpoint(), model, device)?.0)
+            }
+            (Method::Nvae, None) => {
+                return Err(Error::config(
+                    "nvae",
+                    format!(
+                        "{} has method nvae but no nvae table",
+                        self.config().display()
+                    ),
+                ));
+            }
+            _ => {
+                let model = config.model.init(config.seed, device)?;
+                TrainedModel::Procl(load_checkpoint(&self.checkpoint(), model, device)?.0)
+            }
+        };
         Ok((config, model))
     }
+
+    /// Rebuilds a trained ProCL or PC3 model (the latent with learned dynamics `g`).
+    pub fn load_model(&self, device: &Device) -> Result<(TrainConfig, ProclModel)> {
+        match self.load_trained(device)? {
+            (config, TrainedModel::Procl(model)) => Ok((config, model)),
+            (_, TrainedModel::Nvae(_)) => Err(Error::config(
+                "run",
+                format!(
+                    "{} is a NewtonianVAE run; this needs a ProCL or PC3 run",
+                    self.dir.display()
+                ),
+            )),
+        }
+    }
+}
+
+/// A trained model as [`RunPaths::load_trained`] rebuilds it.
+// Both variants are a few kB of tensor handles, built once per command: no reason to box.
+#[allow(clippy::large_enum_variant)]
+pub enum TrainedModel {
+    /// ProCL or PC3: encoder and latent dynamics.
+    Procl(ProclModel),
+    /// The NewtonianVAE.
+    Nvae(NvaeModel),
 }
 
 /// Frames for the data-dependent latent-scale initialisation: 256 drawn from a stream of
@@ -237,7 +339,7 @@ fn scale_frames(data: &Dataset, seed: u64, device: &Device) -> Tensor<4> {
 }
 
 /// A training sample `(i_{t-1}, i_t, u_t, i_{t+1})` is addressed by (episode, t), 1 <= t < T.
-fn sample_batch(data: &Dataset, rng: &mut ChaCha8Rng, n: usize) -> Vec<(usize, usize)> {
+pub(crate) fn sample_batch(data: &Dataset, rng: &mut ChaCha8Rng, n: usize) -> Vec<(usize, usize)> {
     (0..n)
         .map(|_| {
             (
@@ -249,7 +351,12 @@ fn sample_batch(data: &Dataset, rng: &mut ChaCha8Rng, n: usize) -> Vec<(usize, u
 }
 
 /// `[n, d]` standard normal draws from `rng` (Box-Muller; deterministic for a seed).
-fn normal_tensor(rng: &mut ChaCha8Rng, n: usize, d: usize, device: &Device) -> Tensor<2> {
+pub(crate) fn normal_tensor(
+    rng: &mut ChaCha8Rng,
+    n: usize,
+    d: usize,
+    device: &Device,
+) -> Tensor<2> {
     let values: Vec<f32> = (0..n * d)
         .map(|_| {
             let u1: f64 = rng.random_range(f64::EPSILON..1.0);
@@ -260,8 +367,40 @@ fn normal_tensor(rng: &mut ChaCha8Rng, n: usize, d: usize, device: &Device) -> T
     Tensor::from_data(TensorData::new(values, [n, d]), device)
 }
 
-/// The encodings and random draws of training step `step` (its RNG is stream `step` of the
-/// seed, so a resumed run draws exactly what the uninterrupted run would have).
+/// The RNG of training step `step`: stream `step + 1` of the seed, so a resumed run draws
+/// exactly what the uninterrupted run would have.
+pub(crate) fn step_rng(seed: u64, step: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(step + 1);
+    rng
+}
+
+/// The frames of the samples `batch` as one network input `[3n, 3, 64, 64]` (every `i_{t-1}`,
+/// then every `i_t`, then every `i_{t+1}`) and their actions `u_t` `[n, du]`.
+pub(crate) fn batch_tensors(
+    data: &Dataset,
+    batch: &[(usize, usize)],
+    device: &Device,
+) -> (Tensor<4>, Tensor<2>) {
+    let frames = batch
+        .iter()
+        .map(|&(e, t)| data.frame(e, t - 1))
+        .chain(batch.iter().map(|&(e, t)| data.frame(e, t)))
+        .chain(batch.iter().map(|&(e, t)| data.frame(e, t + 1)));
+    let frames: Vec<&[u8]> = frames.collect();
+    let du = data.action_dim();
+    let actions: Vec<f32> = batch
+        .iter()
+        .flat_map(|&(e, t)| (0..du).map(move |i| (e, t, i)))
+        .map(|(e, t, i)| data.actions[[e, t, i]])
+        .collect();
+    (
+        frames_to_tensor(frames.into_iter(), device),
+        Tensor::from_data(TensorData::new(actions, [batch.len(), du]), device),
+    )
+}
+
+/// The encodings and random draws of training step `step` (see [`step_rng`]).
 pub fn loss_inputs(
     model: &ProclModel,
     data: &Dataset,
@@ -269,32 +408,19 @@ pub fn loss_inputs(
     step: u64,
     device: &Device,
 ) -> LossInputs {
-    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    rng.set_stream(step + 1);
+    let mut rng = step_rng(config.seed, step);
     let n = config.batch_size;
     let du = data.action_dim();
     let batch = sample_batch(data, &mut rng, n);
-    let frames = batch
-        .iter()
-        .map(|&(e, t)| data.frame(e, t - 1))
-        .chain(batch.iter().map(|&(e, t)| data.frame(e, t)))
-        .chain(batch.iter().map(|&(e, t)| data.frame(e, t + 1)));
-    let frames: Vec<&[u8]> = frames.collect();
-    let h = model
-        .encoder
-        .forward(frames_to_tensor(frames.into_iter(), device)); // [3n, du]
-    let actions: Vec<f32> = batch
-        .iter()
-        .flat_map(|&(e, t)| (0..du).map(move |i| (e, t, i)))
-        .map(|(e, t, i)| data.actions[[e, t, i]])
-        .collect();
+    let (frames, u) = batch_tensors(data, &batch, device);
+    let h = model.encoder.forward(frames); // [3n, du]
     let mut permutation: Vec<usize> = (0..n).collect();
     permutation.shuffle(&mut rng);
     LossInputs {
         h_prev: h.clone().narrow(0, 0, n),
         h_now: h.clone().narrow(0, n, n),
         h_next: h.narrow(0, 2 * n, n),
-        u: Tensor::from_data(TensorData::new(actions, [n, du]), device),
+        u,
         latent_noise: normal_tensor(&mut rng, n, du, device),
         curvature_noise: (
             normal_tensor(&mut rng, n, du, device),
@@ -420,12 +546,133 @@ impl OrientationSearch {
     }
 }
 
+/// One training step's logged values, named as metrics.csv's columns; the first is the total
+/// loss.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepValues {
+    pub names: &'static [&'static str],
+    pub values: Vec<f64>,
+}
+
+impl StepValues {
+    /// The total loss minimised.
+    pub fn total(&self) -> f64 {
+        self.values.first().copied().unwrap_or(f64::NAN)
+    }
+
+    /// The value of the column `name`.
+    pub fn get(&self, name: &str) -> Option<f64> {
+        let k = self.names.iter().position(|n| *n == name)?;
+        self.values.get(k).copied()
+    }
+
+    pub fn is_finite(&self) -> bool {
+        self.values.iter().all(|x| x.is_finite())
+    }
+}
+
+impl std::fmt::Display for StepValues {
+    /// `total 1.2345 cpc 0.6789 ...`
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let pairs: Vec<String> = self
+            .names
+            .iter()
+            .zip(&self.values)
+            .map(|(name, value)| format!("{name} {value:.4}"))
+            .collect();
+        f.write_str(&pairs.join(" "))
+    }
+}
+
+impl From<LossValues> for StepValues {
+    fn from(values: LossValues) -> Self {
+        Self {
+            names: &LOSS_NAMES,
+            values: values.as_array().to_vec(),
+        }
+    }
+}
+
 /// How a run ended.
 #[derive(Debug, Clone)]
 pub struct TrainSummary {
     pub steps_done: u64,
-    pub last: Option<LossValues>,
+    pub last: Option<StepValues>,
     pub seconds: f64,
+}
+
+/// What one method brings to the shared training loop ([`run_training`]): its model, its loss
+/// and what happens around the optimiser step.
+pub(crate) trait Objective {
+    type Model: Module;
+    /// metrics.csv's columns between `step` and `seconds`; the first is the total.
+    const METRICS: &'static [&'static str];
+    /// Prepares a freshly initialised (not resumed) model.
+    fn prepare(&mut self, model: Self::Model) -> Self::Model {
+        model
+    }
+    /// The loss to minimise at step `step` (0-based) and its logged values.
+    fn loss(&mut self, model: &Self::Model, step: u64) -> (Tensor<1>, StepValues);
+    /// Runs after the optimiser update of step `step` (0-based).
+    fn after_update(&mut self, model: Self::Model, _step: u64) -> Result<Self::Model> {
+        Ok(model)
+    }
+}
+
+/// ProCL and PC3: the losses of [`procl_loss`], the latent-scale initialisation and the
+/// orientation search.
+struct ProclObjective<'a> {
+    config: &'a TrainConfig,
+    data: &'a Dataset,
+    run: &'a RunPaths,
+    device: &'a Device,
+    search: Option<OrientationSearch>,
+}
+
+impl Objective for ProclObjective<'_> {
+    type Model = ProclModel;
+    const METRICS: &'static [&'static str] = &LOSS_NAMES;
+
+    fn prepare(&mut self, mut model: ProclModel) -> ProclModel {
+        if let Some(target_std) = self.config.model.encoder.init_latent_std {
+            let frames = scale_frames(self.data, self.config.seed, self.device);
+            model.encoder = model.encoder.normalise_latent_scale(frames, target_std);
+        }
+        model
+    }
+
+    fn loss(&mut self, model: &ProclModel, step: u64) -> (Tensor<1>, StepValues) {
+        let dt = self.data.meta.control_dt_s;
+        let inputs = loss_inputs(model, self.data, self.config, step, self.device);
+        if let Some(search) = self.search.as_mut() {
+            search.observe(&inputs, &self.config.loss, dt);
+        }
+        let terms = procl_loss(&self.config.loss_at(step), &model.dynamics, inputs, dt);
+        (terms.total.clone(), terms.values().into())
+    }
+
+    fn after_update(&mut self, model: ProclModel, step: u64) -> Result<ProclModel> {
+        let every = self.config.orientation_search_every;
+        let Some(search) = self.search.as_mut() else {
+            return Ok(model);
+        };
+        if !(step + 1).is_multiple_of(every) {
+            return Ok(model);
+        }
+        search.log_window(&self.run.dir.join("orientation_windows.csv"), step + 1)?;
+        let Some((flip, identity, best)) = search.decide() else {
+            return Ok(model);
+        };
+        let line = format!("{},{:?},{identity:.6},{best:.6}\n", step + 1, flip);
+        let log = self.run.dir.join("orientation.csv");
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log)
+            .and_then(|mut f| f.write_all(line.as_bytes()))
+            .map_err(|e| Error::io(&log, e))?;
+        Ok(model.reorient_latent(&flip))
+    }
 }
 
 /// Trains `config` on `data` into the run folder `run`. With `resume`, continues from the
@@ -436,7 +683,7 @@ pub fn train(
     run: &RunPaths,
     resume: bool,
     device: &Device,
-    mut progress: impl FnMut(u64, &LossValues),
+    mut progress: impl FnMut(u64, &StepValues),
 ) -> Result<TrainSummary> {
     config.validate()?;
     if data.meta.env != config.env {
@@ -449,7 +696,39 @@ pub fn train(
         ));
     }
     let device = &device.clone().autodiff();
-    let mut model = config.model.init(config.seed, device)?;
+    match &config.nvae {
+        Some(nvae) => {
+            let model = nvae.init(config.seed, device)?;
+            let objective = NvaeObjective::new(config, nvae, data, device);
+            run_training(objective, model, config, run, resume, device, &mut progress)
+        }
+        None => {
+            let model = config.model.init(config.seed, device)?;
+            let objective = ProclObjective {
+                config,
+                data,
+                run,
+                device,
+                search: (config.orientation_search_every > 0)
+                    .then(|| OrientationSearch::new(data.action_dim())),
+            };
+            run_training(objective, model, config, run, resume, device, &mut progress)
+        }
+    }
+}
+
+/// The loop every method shares: run folder and `--resume`, Adam, one metrics.csv row per
+/// step, a checkpoint every `checkpoint_every` steps and at the end, and a clean stop on a
+/// non-finite loss that keeps the last good checkpoint.
+fn run_training<O: Objective>(
+    mut objective: O,
+    mut model: O::Model,
+    config: &TrainConfig,
+    run: &RunPaths,
+    resume: bool,
+    device: &Device,
+    progress: &mut dyn FnMut(u64, &StepValues),
+) -> Result<TrainSummary> {
     let mut adam = Adam::default();
     let mut start = 0;
     std::fs::create_dir_all(&run.dir).map_err(|e| Error::io(&run.dir, e))?;
@@ -477,32 +756,19 @@ pub fn train(
                 ),
             ));
         }
-        if let Some(target_std) = config.model.encoder.init_latent_std {
-            model.encoder = model
-                .encoder
-                .normalise_latent_scale(scale_frames(data, config.seed, device), target_std);
-        }
+        model = objective.prepare(model);
         crate::fsutil::write_json(&run.config(), config)?;
-        let header = format!("step,{},seconds\n", LOSS_NAMES.join(","));
+        let header = format!("step,{},seconds\n", O::METRICS.join(","));
         std::fs::write(run.metrics(), header).map_err(|e| Error::io(run.metrics(), e))?;
     }
     let mut metrics = std::fs::OpenOptions::new()
         .append(true)
         .open(run.metrics())
         .map_err(|e| Error::io(run.metrics(), e))?;
-    let dt = data.meta.control_dt_s;
     let clock = Instant::now();
     let mut last = None;
-    let mut search =
-        (config.orientation_search_every > 0).then(|| OrientationSearch::new(data.action_dim()));
     for step in start..config.steps {
-        let inputs = loss_inputs(&model, data, config, step, device);
-        if let Some(search) = search.as_mut() {
-            search.observe(&inputs, &config.loss, dt);
-        }
-        let loss = config.loss_at(step);
-        let terms = procl_loss(&loss, &model.dynamics, inputs, dt);
-        let values = terms.values();
+        let (total, values) = objective.loss(&model, step);
         if !values.is_finite() {
             let kept = match (step / config.checkpoint_every) * config.checkpoint_every {
                 0 if !resume => "no checkpoint was written yet".to_string(),
@@ -513,36 +779,14 @@ pub fn train(
                 ),
             };
             return Err(Error::Diverged(format!(
-                "non-finite loss at step {} ({values:?}); {kept}",
+                "non-finite loss at step {} ({values}); {kept}",
                 step + 1
             )));
         }
-        let grads = terms.total.backward();
+        let grads = total.backward();
         model = adam.step(config.learning_rate, model, &grads);
-        if let Some(search) = search.as_mut()
-            && (step + 1) % config.orientation_search_every == 0
-        {
-            search.log_window(&run.dir.join("orientation_windows.csv"), step + 1)?;
-        }
-        if let Some(search) = search.as_mut()
-            && (step + 1) % config.orientation_search_every == 0
-            && let Some((flip, identity, best)) = search.decide()
-        {
-            model = model.reorient_latent(&flip);
-            let line = format!("{},{:?},{identity:.6},{best:.6}\n", step + 1, flip);
-            let log = run.dir.join("orientation.csv");
-            std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&log)
-                .and_then(|mut f| f.write_all(line.as_bytes()))
-                .map_err(|e| Error::io(&log, e))?;
-        }
-        let row: Vec<String> = values
-            .as_array()
-            .iter()
-            .map(|x| format!("{x:.6}"))
-            .collect();
+        model = objective.after_update(model, step)?;
+        let row: Vec<String> = values.values.iter().map(|x| format!("{x:.6}")).collect();
         writeln!(
             metrics,
             "{},{},{:.3}",
@@ -627,6 +871,15 @@ pub fn config_from_table(
         (None, Some(v)) => v.as_str().unwrap_or("").parse()?,
         (None, None) => Method::Procl,
     };
+    if method != Method::Nvae && table.contains_key("nvae") {
+        return Err(Error::config(
+            "nvae",
+            format!(
+                "is for method nvae only, not {} (set method = \"nvae\" or pass --method nvae)",
+                method.label()
+            ),
+        ));
+    }
     let base = TrainConfig::preset(preset, method, env);
     let mut merged =
         toml::Table::try_from(&base).map_err(|e| Error::config("config", e.to_string()))?;

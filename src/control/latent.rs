@@ -1,13 +1,14 @@
-//! Closed-loop policies: latent PD on encoded frames (each frame encoded once), and the oracle
-//! PD on the true state.
+//! Closed-loop policies: a feedback law (PD, PID) on encoded frames (each frame encoded once),
+//! and the oracle PD on the true state.
 
 use std::time::Instant;
 
 use burn::tensor::Device;
 
-use super::PdController;
+use super::{FeedbackLaw, PdController, Pid};
 use crate::envs::State;
-use crate::model::{Encoder, frames_to_tensor, to_vec};
+use crate::model::{Encoder, LatentEncoder, frames_to_tensor, to_vec};
+use crate::nvae::GaussianEncoder;
 
 /// A tracking target for the next action: the reference's latent `(h*, v*)` for latent
 /// policies, its true state for the oracle.
@@ -34,12 +35,13 @@ pub trait Policy {
     fn goal_latent(&self) -> Vec<f64>;
 }
 
-/// PD on the learned latent: `h = e(frame)`, `v = (h - h_prev)/dt`; for reaching the target is
-/// `h* = e(goal)`, `v* = 0`, for tracking the reference's encoding and its finite difference.
-pub struct LatentPdPolicy {
-    encoder: Encoder,
+/// A feedback law on a learned latent: `h = e(frame)`, `v = (h - h_prev)/dt`; for reaching the
+/// target is `h* = e(goal)`, `v* = 0`, for tracking the reference's encoding and its finite
+/// difference.
+pub struct LatentPolicy<L, E = Encoder> {
+    encoder: E,
     device: Device,
-    pd: PdController,
+    law: L,
     dt: f64,
     h_target: Vec<f64>,
     v_target: Vec<f64>,
@@ -48,16 +50,22 @@ pub struct LatentPdPolicy {
     h: Vec<f64>,
     /// Number of frames encoded so far (each frame exactly once).
     pub frames_encoded: usize,
-    /// Wall time of each `act` call (encode + PD), seconds.
+    /// Wall time of each `act` call (encode + feedback law), seconds.
     pub control_times_s: Vec<f64>,
 }
 
-impl LatentPdPolicy {
-    pub fn new(encoder: Encoder, device: Device, pd: PdController, dt: f64) -> Self {
+/// Latent PD on ProCL's (or PC3's) encoder.
+pub type LatentPdPolicy = LatentPolicy<PdController>;
+
+/// PID on the NewtonianVAE's posterior mean.
+pub type LatentPidPolicy = LatentPolicy<Pid, GaussianEncoder>;
+
+impl<L: FeedbackLaw, E: LatentEncoder> LatentPolicy<L, E> {
+    pub fn new(encoder: E, device: Device, law: L, dt: f64) -> Self {
         Self {
             encoder,
             device,
-            pd,
+            law,
             dt,
             h_target: vec![],
             v_target: vec![],
@@ -68,25 +76,32 @@ impl LatentPdPolicy {
         }
     }
 
+    /// The encoder the policy sees frames through.
+    pub fn encoder(&self) -> &E {
+        &self.encoder
+    }
+
     /// Encodes one frame to `h`.
     pub fn encode(&mut self, frame: &[u8]) -> Vec<f64> {
         self.frames_encoded += 1;
         let h = self
             .encoder
-            .forward(frames_to_tensor(std::iter::once(frame), &self.device));
+            .encode(frames_to_tensor(std::iter::once(frame), &self.device));
         to_vec(h).into_iter().map(f64::from).collect()
     }
 }
 
-impl Policy for LatentPdPolicy {
+impl<L: FeedbackLaw, E: LatentEncoder> Policy for LatentPolicy<L, E> {
     fn reset(&mut self, goal_frame: &[u8], _goal: &State) {
         self.h_target = self.encode(goal_frame);
         self.v_target = vec![0.0; self.h_target.len()];
         self.h_prev = None;
+        self.law.reset();
     }
 
     fn start_tracking(&mut self) {
         self.h_prev = None;
+        self.law.reset();
     }
 
     fn set_target(&mut self, target: &Target<'_>) {
@@ -105,7 +120,7 @@ impl Policy for LatentPdPolicy {
             Some(prev) => h.iter().zip(prev).map(|(a, b)| (a - b) / self.dt).collect(),
             None => vec![0.0; h.len()],
         };
-        self.pd.control(&h, &v, &self.h_target, &self.v_target, u);
+        self.law.feedback(&h, &v, &self.h_target, &self.v_target, u);
         self.h_prev = Some(h.clone());
         self.h = h;
         self.control_times_s.push(start.elapsed().as_secs_f64());

@@ -9,7 +9,7 @@ use plotters::prelude::*;
 
 use crate::envs::{EnvKind, FRAME_BYTES, State};
 use crate::error::Result;
-use crate::model::{Encoder, frames_to_tensor, to_vec};
+use crate::model::{LatentEncoder, frames_to_tensor, to_vec};
 
 /// How usable a latent is, at a glance.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -95,7 +95,7 @@ pub fn config_grid(env: EnvKind, side: usize) -> Vec<Vec<f64>> {
 /// Encodes the configurations `configs` (rendered at rest) in batches.
 pub fn encode_configs(
     env: EnvKind,
-    encoder: &Encoder,
+    encoder: &dyn LatentEncoder,
     configs: &[Vec<f64>],
     device: &Device,
 ) -> Result<Vec<Vec<f64>>> {
@@ -110,7 +110,7 @@ pub fn encode_configs(
     }
     let mut latents = vec![];
     for chunk in frames.chunks(256) {
-        let h = encoder.forward(frames_to_tensor(chunk.iter().map(|f| f.as_slice()), device));
+        let h = encoder.encode(frames_to_tensor(chunk.iter().map(|f| f.as_slice()), device));
         let du = h.dims()[1];
         let values = to_vec(h);
         latents.extend(
@@ -217,7 +217,7 @@ fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<Vec<f64>>) -> Vec<Vec<f64>> {
 /// Computes the diagnostics of `encoder` on a grid and, if `png` is given, plots the latent map.
 pub fn latent_diagnostics(
     env: EnvKind,
-    encoder: &Encoder,
+    encoder: &dyn LatentEncoder,
     device: &Device,
     png: Option<&Path>,
 ) -> Result<LatentDiagnostics> {

@@ -18,6 +18,7 @@ pub use reach::{
     run_episode, summarise,
 };
 pub use run::{
-    Controller, EvalOutputs, evaluate_oracle, evaluate_run, evaluate_run_with, write_diagnostics,
+    Controller, EvalOutputs, RunPolicy, evaluate_oracle, evaluate_run, evaluate_run_with,
+    run_policy, write_diagnostics,
 };
 pub use track::{Reference, TrackReport, TrackSummary, track_episode, track_run};

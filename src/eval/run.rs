@@ -3,14 +3,17 @@
 
 use std::path::PathBuf;
 
+use burn::tensor::Device;
+
 use super::plots::{save_episode_gif, save_latent_plot, save_reach_plot};
 use super::reach::{MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise};
 use crate::control::{
-    LatentPdPolicy, MpcConfig, MpcPolicy, OraclePdPolicy, PdController, oracle_gains,
+    FeedbackLaw, LatentPdPolicy, LatentPidPolicy, LatentPolicy, MpcConfig, MpcPolicy,
+    OraclePdPolicy, PdController, Pid, Policy, oracle_gains,
 };
-use crate::error::Result;
-use crate::model::cpu_device;
-use crate::train::{Method, RunPaths};
+use crate::error::{Error, Result};
+use crate::model::{LatentEncoder, cpu_device};
+use crate::train::{RunPaths, TrainConfig, TrainedModel};
 
 /// Output files of an evaluation.
 pub struct EvalOutputs {
@@ -21,16 +24,16 @@ pub struct EvalOutputs {
 }
 
 impl EvalOutputs {
-    /// The files of latent PD's evaluation (the run's own controller).
+    /// The files of the run's own controller's evaluation (latent PD, or PID for nvae).
     pub fn in_run(run: &RunPaths) -> Self {
-        Self::for_controller(run, &Controller::Pd)
+        Self::for_controller(run, &Controller::Feedback)
     }
 
-    /// The files of `controller`'s evaluation: PD writes `eval.json`, ..., MPC `eval-mpc.json`,
-    /// ..., so evaluating one never overwrites the other.
+    /// The files of `controller`'s evaluation: the run's feedback law writes `eval.json`, ...,
+    /// MPC `eval-mpc.json`, ..., so evaluating one never overwrites the other.
     pub fn for_controller(run: &RunPaths, controller: &Controller) -> Self {
         let suffix = match controller {
-            Controller::Pd => "",
+            Controller::Feedback => "",
             Controller::Mpc(_) => "-mpc",
         };
         Self {
@@ -45,19 +48,72 @@ impl EvalOutputs {
 /// Which controller acts on the learned latent.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Controller {
-    /// PD with the training config's gains (ProCL's controller).
-    Pd,
-    /// CEM-MPC through the learned dynamics `g` (the run-time cost reference).
+    /// The run's own feedback law (see [`run_policy`]): PD with the training config's gains
+    /// (ProCL, PC3), PID on the posterior mean (NewtonianVAE).
+    Feedback,
+    /// CEM-MPC through the learned dynamics `g` (the run-time cost reference; ProCL and PC3).
     Mpc(MpcConfig),
+}
+
+/// A latent policy of any feedback law and encoder, as the evaluations drive it.
+pub trait RunPolicy: Policy {
+    /// The encoder the policy sees frames through (tracking encodes its references with it).
+    fn encoder(&self) -> &dyn LatentEncoder;
+    /// The wall time of every `act` so far, seconds, handed over.
+    fn take_control_times(&mut self) -> Vec<f64>;
+}
+
+impl<L: FeedbackLaw, E: LatentEncoder> RunPolicy for LatentPolicy<L, E> {
+    fn encoder(&self) -> &dyn LatentEncoder {
+        LatentPolicy::<L, E>::encoder(self)
+    }
+    fn take_control_times(&mut self) -> Vec<f64> {
+        std::mem::take(&mut self.control_times_s)
+    }
+}
+
+/// The run's own controller on its latent, its label (`ProCL + PD`, `PC3 + PD`,
+/// `NewtonianVAE + PID`) and the `dt` of its latent velocity `v = (h_t - h_{t-1}) / dt`.
+pub fn run_policy(
+    config: &TrainConfig,
+    model: TrainedModel,
+    device: Device,
+) -> Result<(String, f64, Box<dyn RunPolicy>)> {
+    let env_dt = config.env.make().control_dt_s();
+    let label = config.method.label();
+    match (model, &config.nvae) {
+        (TrainedModel::Procl(model), _) => {
+            let pd = PdController {
+                kp: config.loss.kp,
+                kd: config.loss.kd,
+            };
+            let policy = LatentPdPolicy::new(model.encoder, device, pd, env_dt);
+            Ok((format!("{label} + PD"), env_dt, Box::new(policy)))
+        }
+        (TrainedModel::Nvae(model), Some(nvae)) => {
+            let dt = nvae.dt(env_dt);
+            let pid = Pid::new(nvae.pid, dt);
+            let policy = LatentPidPolicy::new(model.encoder, device, pid, dt);
+            Ok((format!("{label} + PID"), dt, Box::new(policy)))
+        }
+        (TrainedModel::Nvae(_), None) => Err(Error::config(
+            "nvae",
+            "a NewtonianVAE model needs its [nvae] configuration",
+        )),
+    }
 }
 
 /// Computes the latent diagnostics of a trained run and writes `latent_map.png` and
 /// `diagnostics.json` into its folder.
 pub fn write_diagnostics(run: &RunPaths) -> Result<super::LatentDiagnostics> {
     let device = cpu_device();
-    let (config, model) = run.load_model(&device)?;
+    let (config, model) = run.load_trained(&device)?;
     let png = run.dir.join("latent_map.png");
-    let diagnostics = super::latent_diagnostics(config.env, &model.encoder, &device, Some(&png))?;
+    let encoder: &dyn LatentEncoder = match &model {
+        TrainedModel::Procl(model) => &model.encoder,
+        TrainedModel::Nvae(model) => &model.encoder,
+    };
+    let diagnostics = super::latent_diagnostics(config.env, encoder, &device, Some(&png))?;
     let path = run.dir.join("diagnostics.json");
     crate::fsutil::write_json(&path, &diagnostics)?;
     Ok(diagnostics)
@@ -76,14 +132,14 @@ pub fn evaluate_oracle(env: crate::envs::EnvKind, protocol: &ReachConfig) -> Res
     Ok(summarise("oracle PD (true state)", &records, protocol, &[]))
 }
 
-/// Runs latent PD with the run's gains (its `config.json`) and the oracle on the same tasks,
-/// and writes the outputs into the run folder.
+/// Runs the run's own controller (latent PD with the gains of its `config.json`, or PID for a
+/// NewtonianVAE) and the oracle on the same tasks, and writes the outputs into the run folder.
 pub fn evaluate_run(
     run: &RunPaths,
     protocol: &ReachConfig,
     progress: impl FnMut(usize),
 ) -> Result<ReachReport> {
-    evaluate_run_with(run, protocol, &Controller::Pd, progress)
+    evaluate_run_with(run, protocol, &Controller::Feedback, progress)
 }
 
 /// As [`evaluate_run`] with the given controller on the latent.
@@ -94,28 +150,30 @@ pub fn evaluate_run_with(
     mut progress: impl FnMut(usize),
 ) -> Result<ReachReport> {
     let device = cpu_device();
-    let (config, model) = run.load_model(&device)?;
+    let (config, model) = run.load_trained(&device)?;
     let env = config.env;
-    let dt = env.make().control_dt_s();
-    let method = match config.method {
-        Method::Procl => "ProCL",
-        Method::Pc3 => "PC3",
-    };
-    let (label, records, times) = match controller {
-        Controller::Pd => {
-            let pd = PdController {
-                kp: config.loss.kp,
-                kd: config.loss.kd,
-            };
-            let mut policy = LatentPdPolicy::new(model.encoder, device, pd, dt);
-            let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
-            (format!("{method} + PD"), records, policy.control_times_s)
+    let (label, records, times) = match (controller, model) {
+        (Controller::Feedback, model) => {
+            let (label, _, mut policy) = run_policy(&config, model, device)?;
+            let records = evaluate_reach(env, protocol, policy.as_mut(), true, &mut progress)?;
+            (label, records, policy.take_control_times())
         }
-        Controller::Mpc(mpc) => {
+        (Controller::Mpc(mpc), TrainedModel::Procl(model)) => {
+            let dt = env.make().control_dt_s();
             let mut policy =
                 MpcPolicy::new(model.encoder, model.dynamics, device, mpc.clone(), dt)?;
             let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
-            (format!("{method} + MPC"), records, policy.control_times_s)
+            let label = format!("{} + MPC", config.method.label());
+            (label, records, policy.control_times_s)
+        }
+        (Controller::Mpc(_), TrainedModel::Nvae(_)) => {
+            return Err(Error::config(
+                "controller",
+                format!(
+                    "MPC plans through ProCL's and PC3's learned dynamics; {} is a NewtonianVAE run, evaluated with its PID (leave out --controller)",
+                    run.dir.display()
+                ),
+            ));
         }
     };
     let label = label.as_str();

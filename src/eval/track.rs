@@ -8,12 +8,13 @@ use burn::tensor::Device;
 
 use super::plots::save_track_plot;
 use super::reach::{EpisodeRecord, MethodSummary, ReachConfig, summarise};
-use crate::control::{LatentPdPolicy, OraclePdPolicy, PdController, Policy, Target, oracle_gains};
+use super::run::run_policy;
+use crate::control::{OraclePdPolicy, Policy, Target, oracle_gains};
 use crate::data::Dataset;
 use crate::envs::{EnvKind, FRAME_BYTES, State};
 use crate::error::{Error, Result};
-use crate::model::{Encoder, cpu_device, frames_to_tensor, to_vec};
-use crate::train::{Method, RunPaths};
+use crate::model::{LatentEncoder, cpu_device, frames_to_tensor, to_vec};
+use crate::train::RunPaths;
 
 /// The reference of one demonstration: per frame `t`, the true state and (for latent policies)
 /// `h*_t = e(frame_t)` and `v*_t = (h*_t - h*_{t-1}) / dt`, the same finite difference that
@@ -52,10 +53,10 @@ impl Reference {
     }
 
     /// Encodes every reference frame once (one batch) and differences the encodings.
-    pub fn encode(&mut self, encoder: &Encoder, device: &Device, dt: f64) {
+    pub fn encode(&mut self, encoder: &dyn LatentEncoder, device: &Device, dt: f64) {
         let batch = frames_to_tensor(self.frames.iter().map(Vec::as_slice), device);
         let [n, du] = [self.frames.len(), encoder.latent_dim()];
-        let flat = to_vec(encoder.forward(batch));
+        let flat = to_vec(encoder.encode(batch));
         self.h = (0..n)
             .map(|t| {
                 flat[t * du..(t + 1) * du]
@@ -170,16 +171,17 @@ fn summarise_tracking(
     }
 }
 
-/// Tracks every demonstration in `demo_path` with the run's latent PD (its training gains) and
-/// with the oracle, and writes `track.json` and `track.png` into the run folder. `progress`
-/// gets (demonstrations done, demonstrations in all).
+/// Tracks every demonstration in `demo_path` with the run's own controller (latent PD with its
+/// training gains, or PID for a NewtonianVAE) and with the oracle, and writes `track.json` and
+/// `track.png` into the run folder. `progress` gets (demonstrations done, demonstrations in
+/// all).
 pub fn track_run(
     run: &RunPaths,
     demo_path: &Path,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<TrackReport> {
     let device = cpu_device();
-    let (config, model) = run.load_model(&device)?;
+    let (config, model) = run.load_trained(&device)?;
     let env = config.env;
     let demo = Dataset::load(demo_path)?;
     if demo.meta.env != env {
@@ -192,30 +194,22 @@ pub fn track_run(
             ),
         ));
     }
-    let dt = env.make().control_dt_s();
-    let pd = PdController {
-        kp: config.loss.kp,
-        kd: config.loss.kd,
-    };
-    let mut latent_policy = LatentPdPolicy::new(model.encoder.clone(), device.clone(), pd, dt);
+    let (label, dt, mut latent_policy) = run_policy(&config, model, device.clone())?;
     let mut oracle = OraclePdPolicy::new(oracle_gains(env));
     let (mut latent_runs, mut oracle_runs, mut reference_paths) = (vec![], vec![], vec![]);
     for episode in 0..demo.episodes() {
         let mut reference = Reference::from_demo(&demo, episode);
         oracle_runs.push(track_episode(env, &mut oracle, &reference)?);
-        reference.encode(&model.encoder, &device, dt);
-        let mut record = track_episode(env, &mut latent_policy, &reference)?;
+        reference.encode(latent_policy.encoder(), &device, dt);
+        let mut record = track_episode(env, latent_policy.as_mut(), &reference)?;
         record.goal_latent = reference.h.last().cloned().unwrap_or_default();
         reference_paths.push(reference.states.iter().map(|s| s.q.clone()).collect());
         latent_runs.push(record);
         progress(episode + 1, demo.episodes());
     }
     let protocol = ReachConfig::for_env(env, 0);
-    let label = match config.method {
-        Method::Procl => "ProCL + PD",
-        Method::Pc3 => "PC3 + PD",
-    };
-    let times = std::mem::take(&mut latent_policy.control_times_s);
+    let label = label.as_str();
+    let times = latent_policy.take_control_times();
     let report = TrackReport {
         env,
         demo: demo_path.to_path_buf(),

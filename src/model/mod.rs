@@ -61,6 +61,25 @@ pub fn frames_to_tensor<'a>(
     Tensor::from_data(TensorData::new(data, [n, 3, FRAME_PX, FRAME_PX]), device)
 }
 
+/// Frames to the latent configuration a controller acts on: ProCL's encoder `e`, or the
+/// NewtonianVAE's posterior mean. Closed-loop control, tracking and the latent diagnostics see
+/// a model only through this.
+pub trait LatentEncoder {
+    /// `frames [n, 3, 64, 64]` (from [`frames_to_tensor`]) -> `[n, du]`.
+    fn encode(&self, frames: Tensor<4>) -> Tensor<2>;
+    /// Dimension of the latent configuration.
+    fn latent_dim(&self) -> usize;
+}
+
+impl LatentEncoder for Encoder {
+    fn encode(&self, frames: Tensor<4>) -> Tensor<2> {
+        self.forward(frames)
+    }
+    fn latent_dim(&self) -> usize {
+        Encoder::latent_dim(self)
+    }
+}
+
 /// The whole ProCL model: encoder and latent dynamics, trained jointly.
 #[derive(Module, Debug)]
 pub struct ProclModel {
@@ -153,6 +172,12 @@ pub(crate) fn trainable<const D: usize>(tensor: Tensor<D>) -> Tensor<D> {
     } else {
         tensor
     }
+}
+
+/// Reads scalar `[1]` tensors back to the host in one device sync (loss terms for logging).
+pub fn read_scalars(scalars: &[&Tensor<1>]) -> Vec<f64> {
+    let all = Tensor::cat(scalars.iter().map(|&t| t.clone()).collect(), 0);
+    to_vec(all).into_iter().map(f64::from).collect()
 }
 
 /// Reads a float tensor back as a flat `Vec<f32>`, row-major.

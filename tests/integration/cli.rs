@@ -3,15 +3,39 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-fn procl(args: &[&str]) -> Output {
+pub(crate) fn procl(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_procl"))
         .args(args)
         .output()
         .expect("run procl")
 }
 
+/// Asserts that `procl train` wrote everything it promises into the run folder `run`.
+pub(crate) fn assert_train_outputs(run: &Path) {
+    for file in [
+        "config.json",
+        "model.safetensors",
+        "metrics.csv",
+        "latent_map.png",
+        "diagnostics.json",
+    ] {
+        assert!(run.join(file).exists(), "train did not write {file}");
+    }
+}
+
+/// Runs `procl args` and asserts that it succeeded.
+pub(crate) fn succeeds(args: &[&str]) -> Output {
+    let out = procl(args);
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 /// Asserts failure with a single-line error on stderr containing `needle`.
-fn fails_with(args: &[&str], needle: &str) {
+pub(crate) fn fails_with(args: &[&str], needle: &str) {
     let out = procl(args);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{args:?} succeeded");
@@ -26,7 +50,7 @@ fn fails_with(args: &[&str], needle: &str) {
     );
 }
 
-fn path_str(p: &Path) -> &str {
+pub(crate) fn path_str(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
@@ -66,15 +90,7 @@ fn collect_render_info_and_bad_input() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains("linear R^2"));
-    for file in [
-        "config.json",
-        "model.safetensors",
-        "metrics.csv",
-        "latent_map.png",
-        "diagnostics.json",
-    ] {
-        assert!(run.join(file).exists(), "train did not write {file}");
-    }
+    assert_train_outputs(&run);
     let info = procl(&["info", "--data", path_str(&npz)]);
     assert!(String::from_utf8_lossy(&info.stdout).contains("point-mass"));
 

@@ -6,6 +6,7 @@ mod control;
 mod data;
 mod envs;
 mod fetch;
+mod nvae;
 mod research;
 mod track;
 mod train;

@@ -143,7 +143,7 @@ fn training_lowers_cpc_and_total_loss() {
         &RunPaths::new(dir.path()),
         false,
         &cpu_device(),
-        |step, values| seen.push((step, values.total)),
+        |step, values| seen.push((step, values.total())),
     )
     .unwrap();
     assert_eq!(summary.steps_done, steps);
