@@ -99,6 +99,16 @@ pub struct TrainConfig {
     /// spread the latent out, the risk can win the race and collapse it.
     #[serde(default)]
     pub risk_warmup_steps: u64,
+    /// The orientation search switches when a candidate's windowed risk is below
+    /// `(1 - orientation_margin)` times the current one's ...
+    #[serde(default = "default_orientation_margin")]
+    pub orientation_margin: f64,
+    /// ... and it has been the best candidate for this many consecutive windows (1: decide on
+    /// each window alone). For Fetch the candidates' risks differ by only 2-3% per window,
+    /// but the same one wins window after window. A streak > 1 is not carried across
+    /// `--resume` (the count restarts).
+    #[serde(default = "default_orientation_streak")]
+    pub orientation_streak: u64,
     /// ProCL's and PC3's losses and networks (unused by `nvae`).
     pub loss: LossConfig,
     pub model: ModelConfig,
@@ -106,6 +116,14 @@ pub struct TrainConfig {
     /// the config.json of earlier runs still loads and compares equal).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub nvae: Option<NvaeConfig>,
+}
+
+fn default_orientation_margin() -> f64 {
+    0.1
+}
+
+fn default_orientation_streak() -> u64 {
+    1
 }
 
 impl TrainConfig {
@@ -132,6 +150,8 @@ impl TrainConfig {
             checkpoint_every: 500,
             orientation_search_every: 0,
             risk_warmup_steps: 0,
+            orientation_margin: default_orientation_margin(),
+            orientation_streak: default_orientation_streak(),
             loss: LossConfig::default(),
             model: ModelConfig::for_action_dim(du),
             nvae: None,
@@ -168,6 +188,12 @@ impl TrainConfig {
     pub fn validate(&self) -> Result<()> {
         if self.steps == 0 {
             return Err(Error::config("steps", "must be at least 1"));
+        }
+        if !(0.0..1.0).contains(&self.orientation_margin) {
+            return Err(Error::config(
+                "orientation_margin",
+                format!("{} must be in [0, 1)", self.orientation_margin),
+            ));
         }
         if self.batch_size < 2 && self.method != Method::Nvae {
             return Err(Error::config(
@@ -438,6 +464,8 @@ pub struct OrientationSearch {
     /// Row-major `du x du` signed permutation matrices, identity first.
     candidates: Vec<Vec<f32>>,
     sums: Vec<f64>,
+    /// The candidate that was best in the last windows, and for how many in a row.
+    run: (usize, u64),
 }
 
 /// All signed permutation matrices of size `du` (row-major), identity first.
@@ -474,7 +502,11 @@ impl OrientationSearch {
     pub fn new(du: usize) -> Self {
         let candidates = signed_permutations(du);
         let sums = vec![0.0; candidates.len()];
-        Self { candidates, sums }
+        Self {
+            candidates,
+            sums,
+            run: (0, 0),
+        }
     }
 
     /// Adds this batch's risk under every candidate `p` (latent `h -> p h`).
@@ -514,8 +546,6 @@ impl OrientationSearch {
         }
     }
 
-    /// Ends the window: the best candidate if it beats the current orientation by 10%, with
-    /// the window's summed risks of the current orientation and the best.
     /// Appends this window's summed risk of every candidate (in [`signed_permutations`]
     /// order, candidate 0 the current orientation) to `path`, with a header on creation: the
     /// evidence behind each decision, including the windows that changed nothing.
@@ -535,14 +565,25 @@ impl OrientationSearch {
             .map_err(|e| Error::io(path, e))
     }
 
-    pub fn decide(&mut self) -> Option<(Vec<f32>, f64, f64)> {
+    /// Ends the window: the best candidate if it has been the best for `streak` consecutive
+    /// windows and beats the current orientation by the fraction `margin` in this one, with the
+    /// window's summed risks of the current orientation and the best.
+    pub fn decide(&mut self, margin: f64, streak: u64) -> Option<(Vec<f32>, f64, f64)> {
         let best = (0..self.sums.len())
             .min_by(|&a, &b| self.sums[a].total_cmp(&self.sums[b]))
             .unwrap_or(0);
         let (identity, best_sum) = (self.sums[0], self.sums[best]);
         self.sums.iter_mut().for_each(|s| *s = 0.0);
-        (best != 0 && best_sum < 0.9 * identity)
-            .then(|| (self.candidates[best].clone(), identity, best_sum))
+        self.run = match self.run {
+            (k, n) if k == best && best != 0 => (best, n + 1),
+            _ => (best, u64::from(best != 0)),
+        };
+        let switch =
+            best != 0 && self.run.1 >= streak.max(1) && best_sum < (1.0 - margin) * identity;
+        if switch {
+            self.run = (0, 0);
+        }
+        switch.then(|| (self.candidates[best].clone(), identity, best_sum))
     }
 }
 
@@ -660,7 +701,10 @@ impl Objective for ProclObjective<'_> {
             return Ok(model);
         }
         search.log_window(&self.run.dir.join("orientation_windows.csv"), step + 1)?;
-        let Some((flip, identity, best)) = search.decide() else {
+        let Some((flip, identity, best)) = search.decide(
+            self.config.orientation_margin,
+            self.config.orientation_streak,
+        ) else {
             return Ok(model);
         };
         let line = format!("{},{:?},{identity:.6},{best:.6}\n", step + 1, flip);
@@ -920,6 +964,36 @@ mod tests {
             let reacher = TrainConfig::preset(preset, Method::Procl, EnvKind::Reacher);
             assert_eq!(reacher.loss.lyapunov_dt_s, None);
         }
+    }
+
+    #[test]
+    fn orientation_search_needs_the_margin_and_the_streak() {
+        let mut search = OrientationSearch::new(2);
+        let mut window = |search: &mut OrientationSearch, best: usize, ratio: f64| {
+            search.sums.iter_mut().for_each(|s| *s = 1.0);
+            search.sums[best] = ratio;
+            search.decide(0.0, 3).map(|(p, _, _)| p)
+        };
+        // Candidate 5 wins by 3% twice, candidate 2 interrupts, then 5 wins three in a row.
+        assert_eq!(window(&mut search, 5, 0.97), None);
+        assert_eq!(window(&mut search, 5, 0.97), None);
+        assert_eq!(window(&mut search, 2, 0.97), None);
+        assert_eq!(window(&mut search, 5, 0.97), None);
+        assert_eq!(window(&mut search, 5, 0.97), None);
+        let expected = signed_permutations(2)[5].clone();
+        assert_eq!(window(&mut search, 5, 0.97), Some(expected));
+        // The default rule (margin 10%, streak 1): a 3% win is not enough, a 20% win is.
+        search.sums.iter_mut().for_each(|s| *s = 1.0);
+        search.sums[4] = 0.97;
+        assert!(search.decide(0.1, 1).is_none());
+        search.sums.iter_mut().for_each(|s| *s = 1.0);
+        search.sums[4] = 0.8;
+        assert!(search.decide(0.1, 1).is_some());
+        // A margin of 1 or more is refused by name.
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Fetch);
+        config.orientation_margin = 1.0;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("orientation_margin"), "{err}");
     }
 
     #[test]
