@@ -969,7 +969,7 @@ mod tests {
     #[test]
     fn orientation_search_needs_the_margin_and_the_streak() {
         let mut search = OrientationSearch::new(2);
-        let mut window = |search: &mut OrientationSearch, best: usize, ratio: f64| {
+        let window = |search: &mut OrientationSearch, best: usize, ratio: f64| {
             search.sums.iter_mut().for_each(|s| *s = 1.0);
             search.sums[best] = ratio;
             search.decide(0.0, 3).map(|(p, _, _)| p)
