@@ -194,7 +194,8 @@ pub(crate) fn latent_plane_chart<'a, 'b>(
     plane_chart(root, title, ("h[0]", "h[1]"), points)
 }
 
-/// A 2-D chart padded 5% around the finite `points`, with the given axis names.
+/// A 2-D chart with equal spans on both axes, padded 5% around the finite `points`, with the
+/// given axis names.
 fn plane_chart<'a, 'b>(
     root: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
     title: &str,
@@ -208,7 +209,12 @@ fn plane_chart<'a, 'b>(
     if x0 > x1 {
         (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
     }
-    let pad = 0.05 * (x1 - x0).max(y1 - y0).max(1e-6);
+    // One span for both axes (the panels are square), so circles stay round and the latent's
+    // aspect ratio is the true one.
+    let span = (x1 - x0).max(y1 - y0).max(1e-6);
+    let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
+    (x0, x1, y0, y1) = (cx - span / 2.0, cx + span / 2.0, cy - span / 2.0, cy + span / 2.0);
+    let pad = 0.05 * span;
     let mut chart = ChartBuilder::on(root)
         .caption(title, ("sans-serif", 20))
         .margin(12)
