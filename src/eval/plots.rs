@@ -213,7 +213,12 @@ fn plane_chart<'a, 'b>(
     // aspect ratio is the true one.
     let span = (x1 - x0).max(y1 - y0).max(1e-6);
     let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
-    (x0, x1, y0, y1) = (cx - span / 2.0, cx + span / 2.0, cy - span / 2.0, cy + span / 2.0);
+    (x0, x1, y0, y1) = (
+        cx - span / 2.0,
+        cx + span / 2.0,
+        cy - span / 2.0,
+        cy + span / 2.0,
+    );
     let pad = 0.05 * span;
     let mut chart = ChartBuilder::on(root)
         .caption(title, ("sans-serif", 20))
@@ -326,6 +331,14 @@ pub fn save_track_plot(
     let plane = |q: &Vec<f64>| (q[0], q.get(1).copied().unwrap_or(0.0));
     render_png(path, (1400, 640), |root| {
         let (left, right) = root.split_horizontally(640);
+        let three_d = references
+            .first()
+            .and_then(|r| r.first())
+            .is_some_and(|q| q.len() >= 3);
+        if three_d {
+            draw_paths_3d(&left, title, references, latent_runs, oracle_runs, SHOWN)?;
+            return draw_tracking_errors(&right, methods, protocol);
+        }
         let points = references
             .iter()
             .take(SHOWN)
@@ -367,21 +380,98 @@ pub fn save_track_plot(
                 }
             }
         }
-        let summaries: Vec<MethodSummary> = methods.iter().map(|m| m.per_step.clone()).collect();
-        let legend = |m: &MethodSummary| {
-            let mean = methods
-                .iter()
-                .find(|t| t.per_step.method == m.method)
-                .map_or(f64::NAN, |t| t.mean_error);
-            format!("{} (mean error {mean:.4})", m.method)
-        };
-        distance_chart(
-            &right,
-            "tracking error per step (dashed: goal-reaching threshold)",
-            &summaries,
-            protocol.success_threshold,
-            &format!("distance to reference ({})", protocol.distance_unit),
-            legend,
-        )
+        draw_tracking_errors(&right, methods, protocol)
     })
+}
+
+/// The per-step tracking error of each method (mean +- std, log y) on `area`.
+fn draw_tracking_errors(
+    area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    methods: &[super::track::TrackSummary],
+    protocol: &super::ReachConfig,
+) -> std::result::Result<(), String> {
+    let summaries: Vec<MethodSummary> = methods.iter().map(|m| m.per_step.clone()).collect();
+    let legend = |m: &MethodSummary| {
+        let mean = methods
+            .iter()
+            .find(|t| t.per_step.method == m.method)
+            .map_or(f64::NAN, |t| t.mean_error);
+        format!("{} (mean error {mean:.4})", m.method)
+    };
+    distance_chart(
+        area,
+        "tracking error per step (dashed: goal-reaching threshold)",
+        &summaries,
+        protocol.success_threshold,
+        &format!("distance to reference ({})", protocol.distance_unit),
+        legend,
+    )
+}
+
+/// Reference (black) and achieved paths (latent PD coloured, oracle grey) of up to `shown`
+/// demonstrations in a 3-D view of the configuration space (Fetch's gripper position).
+fn draw_paths_3d(
+    area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    title: &str,
+    references: &[Vec<Vec<f64>>],
+    latent_runs: &[EpisodeRecord],
+    oracle_runs: &[EpisodeRecord],
+    shown: usize,
+) -> std::result::Result<(), String> {
+    let point = |q: &Vec<f64>| (q[0], q[1], q[2]);
+    let mut bounds = [(f64::MAX, f64::MIN); 3];
+    for q in references
+        .iter()
+        .take(shown)
+        .chain(latent_runs.iter().take(shown).map(|r| &r.configs))
+        .flatten()
+        .filter(|q| q.len() >= 3 && q.iter().all(|x| x.is_finite()))
+    {
+        for (b, &x) in bounds.iter_mut().zip(q) {
+            *b = (b.0.min(x), b.1.max(x));
+        }
+    }
+    // One span for all axes, so the path's shape is not distorted.
+    let span = bounds.iter().map(|b| b.1 - b.0).fold(1e-6, f64::max) * 1.1;
+    let range = |b: (f64, f64)| {
+        let centre = if b.0 <= b.1 { 0.5 * (b.0 + b.1) } else { 0.0 };
+        (centre - span / 2.0)..(centre + span / 2.0)
+    };
+    let mut chart = ChartBuilder::on(area)
+        .caption(title, ("sans-serif", 20))
+        .margin(12)
+        .build_cartesian_3d(range(bounds[0]), range(bounds[2]), range(bounds[1]))
+        .map_err(|e| e.to_string())?;
+    chart.with_projection(|mut p| {
+        p.yaw = 0.6;
+        p.pitch = 0.4;
+        p.scale = 0.85;
+        p.into_matrix()
+    });
+    chart
+        .configure_axes()
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(|e| e.to_string())?;
+    // plotters' 3-D y axis is vertical: plot (q0, q2, q1) so the height q2 points up.
+    let upright = |q: &Vec<f64>| {
+        let (x, y, z) = point(q);
+        (x, z, y)
+    };
+    for (k, reference) in references.iter().take(shown).enumerate() {
+        let mut draw = |line: &[Vec<f64>], style: ShapeStyle| {
+            chart
+                .draw_series(LineSeries::new(line.iter().map(upright), style))
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        };
+        draw(reference, BLACK.stroke_width(3))?;
+        if let Some(run) = oracle_runs.get(k) {
+            draw(&run.configs, RGBColor(150, 150, 150).stroke_width(1))?;
+        }
+        if let Some(run) = latent_runs.get(k) {
+            draw(&run.configs, PALETTE[k % PALETTE.len()].stroke_width(2))?;
+        }
+    }
+    Ok(())
 }

@@ -193,3 +193,43 @@ fn track_writes_its_outputs_and_refuses_another_envs_demo() {
         "{err}"
     );
 }
+
+#[test]
+fn fetch_tracking_draws_its_paths_in_3d() {
+    let dir = tempfile::tempdir().unwrap();
+    let env = EnvKind::Fetch;
+    let data = collect(
+        &CollectConfig {
+            transitions: 60,
+            episode_len: 20,
+            ..CollectConfig::new(env, 1)
+        },
+        |_| {},
+    )
+    .unwrap();
+    let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, env);
+    (
+        config.steps,
+        config.batch_size,
+        config.checkpoint_every,
+        config.orientation_search_every,
+    ) = (1, 4, 1, 0);
+    config.model.encoder.trunk_channels = [4, 4];
+    let run = RunPaths::new(dir.path().join("run"));
+    train(&config, &data, &run, false, &cpu_device(), |_, _| {}).unwrap();
+    let demo_path = dir.path().join("fetch.npz");
+    let demo = ReferenceConfig {
+        episodes: 1,
+        steps: 20,
+        ..ReferenceConfig::new(env, PathShape::Spline, 0)
+    };
+    generate_reference(&demo, |_| {})
+        .unwrap()
+        .save(&demo_path, false)
+        .unwrap();
+    let report = track_run(&run, &demo_path, |_, _| {}).unwrap();
+    assert_eq!(report.env, EnvKind::Fetch);
+    assert_eq!(report.methods[0].per_step.per_step_mean.len(), 21);
+    let png = std::fs::read(run.dir.join("track.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+}
