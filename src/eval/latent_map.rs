@@ -18,7 +18,7 @@ pub struct LatentDiagnostics {
     pub linear_r2: f64,
     /// R^2 per configuration dimension.
     pub linear_r2_per_dim: Vec<f64>,
-    /// The fitted map h ~ M q + c (rows: h dims), and det(M) for square maps.
+    /// The fitted map h ~ M q + c (rows: h dims), and det(M) for 2x2 and 3x3 maps.
     pub config_to_latent: Vec<Vec<f64>>,
     pub config_to_latent_det: Option<f64>,
     /// R^2 of q from a leave-one-out 5-nearest-neighbour regression on h (averaged over
@@ -28,6 +28,22 @@ pub struct LatentDiagnostics {
     pub knn_r2: f64,
     /// Grid points encoded.
     pub points: usize,
+}
+
+/// The determinant of a square 2x2 or 3x3 matrix (rows), `None` for other shapes.
+pub fn determinant(m: &[Vec<f64>]) -> Option<f64> {
+    if m.iter().any(|row| row.len() != m.len()) {
+        return None;
+    }
+    match m.len() {
+        2 => Some(m[0][0] * m[1][1] - m[0][1] * m[1][0]),
+        3 => Some(
+            m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+                - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+                + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]),
+        ),
+        _ => None,
+    }
 }
 
 /// Leave-one-out `k`-nearest-neighbour regression of `targets` from `inputs` (Euclidean in
@@ -229,8 +245,7 @@ pub fn latent_diagnostics(
         .iter()
         .map(|row| row[..row.len() - 1].to_vec())
         .collect();
-    let det = (square.len() == 2 && square[0].len() == 2)
-        .then(|| square[0][0] * square[1][1] - square[0][1] * square[1][0]);
+    let det = determinant(&square);
     if let Some(path) = png {
         save_latent_map(path, env, &configs, &latents)?;
     }
@@ -297,6 +312,18 @@ mod tests {
         (0..400)
             .map(|k| vec![(k % 20) as f64 / 19.0, (k / 20) as f64 / 19.0])
             .collect()
+    }
+
+    #[test]
+    fn determinants_of_2x2_and_3x3_maps() {
+        assert_eq!(determinant(&[vec![2.0, 1.0], vec![1.0, 3.0]]), Some(5.0));
+        // A 3x3 signed permutation (h -> (-h2, h1, h0)) has det +1; numpy: 1.0.
+        let p = [vec![0.0, 0.0, -1.0], vec![0.0, 1.0, 0.0], vec![1.0, 0.0, 0.0]];
+        assert_eq!(determinant(&p), Some(1.0));
+        // numpy.linalg.det([[1,2,3],[0,1,4],[5,6,0]]) = 1.0
+        let m = [vec![1.0, 2.0, 3.0], vec![0.0, 1.0, 4.0], vec![5.0, 6.0, 0.0]];
+        assert!((determinant(&m).unwrap() - 1.0).abs() < 1e-12);
+        assert_eq!(determinant(&[vec![1.0, 2.0]]), None);
     }
 
     #[test]
