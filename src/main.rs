@@ -176,9 +176,9 @@ enum Command {
         /// Override the env's protocol horizon.
         #[arg(long)]
         horizon: Option<usize>,
-        /// Dataset transitions (default 10,000).
-        #[arg(long, default_value_t = 10_000)]
-        transitions: usize,
+        /// Dataset transitions (default: spec.md 2's size for the env, 50,000 for fetch).
+        #[arg(long)]
+        transitions: Option<usize>,
         #[arg(long)]
         out: PathBuf,
     },
@@ -503,10 +503,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let data = if data_path.exists() {
                 procl::data::Dataset::load(&data_path)?
             } else {
+                let defaults = CollectConfig::new(env, 0);
+                let transitions = transitions.unwrap_or(defaults.transitions);
                 let config = CollectConfig {
                     transitions,
                     episode_len: 100.min(transitions),
-                    ..CollectConfig::new(env, 0)
+                    ..defaults
                 };
                 let data = collect(&config, |_| {})?;
                 data.save(&data_path, false)?;
