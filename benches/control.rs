@@ -5,7 +5,7 @@
 //! their values.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use procl::control::{LatentPdPolicy, MpcConfig, MpcPolicy, PdController, Policy};
+use procl::control::{CemMpc, LatentPdPolicy, MpcConfig, MpcPolicy, PdController, Policy};
 use procl::envs::{EnvKind, FRAME_BYTES, State};
 use procl::model::{ModelConfig, cpu_device};
 use procl::train::{Method, Preset, TrainConfig};
@@ -22,14 +22,9 @@ fn control_step(c: &mut Criterion) {
             TrainConfig::preset(preset, Method::Procl, EnvKind::PointMass).model;
         let device = cpu_device();
         let model = config.init(0, &device).expect("model");
-        let mut mpc = MpcPolicy::new(
-            model.encoder.clone(),
-            model.dynamics,
-            device.clone(),
-            MpcConfig::default(),
-            0.02,
-        )
-        .expect("mpc");
+        let law =
+            CemMpc::new(model.dynamics, device.clone(), MpcConfig::default(), 0.02).expect("mpc");
+        let mut mpc = MpcPolicy::new(model.encoder.clone(), device.clone(), law, 0.02);
         let mut policy = LatentPdPolicy::new(
             model.encoder,
             device,

@@ -972,9 +972,15 @@ mod tests {
         }
         // The streak rule is Fetch's; the 2D envs keep the rule their results were measured with.
         let fetch = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Fetch);
-        assert_eq!((fetch.orientation_margin, fetch.orientation_streak), (0.0, 3));
+        assert_eq!(
+            (fetch.orientation_margin, fetch.orientation_streak),
+            (0.0, 3)
+        );
         let point_mass = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
-        assert_eq!((point_mass.orientation_margin, point_mass.orientation_streak), (0.1, 1));
+        assert_eq!(
+            (point_mass.orientation_margin, point_mass.orientation_streak),
+            (0.1, 1)
+        );
     }
 
     #[test]

@@ -6,7 +6,7 @@ mod mpc;
 mod pid;
 
 pub use latent::{LatentPdPolicy, LatentPidPolicy, LatentPolicy, OraclePdPolicy, Policy, Target};
-pub use mpc::{LatentStep, MpcConfig, MpcPolicy, cem_plan};
+pub use mpc::{CemMpc, LatentStep, MpcConfig, MpcPolicy, cem_plan};
 pub use pid::{FeedbackLaw, Pid, PidController};
 
 /// PD control `u = Kp (h* - h) + Kd (v* - v)` with diagonal gains, clipped to [-1, 1].

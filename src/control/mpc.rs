@@ -2,15 +2,12 @@
 //! against): the cross-entropy method over action sequences, rolled out through the latent
 //! dynamics `g`, with the Lyapunov function's quadratic cost to the goal latent.
 
-use std::time::Instant;
-
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::latent::{Policy, Target};
-use crate::envs::State;
-use crate::model::{Dynamics, Encoder, frames_to_tensor, to_vec};
+use super::{FeedbackLaw, LatentPolicy};
+use crate::model::{Dynamics, to_vec};
 
 /// CEM-MPC settings.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -166,27 +163,21 @@ fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
     (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
-/// CEM-MPC on encoded frames: `h = e(frame)`, `v = (h - h_prev)/dt` exactly as the latent PD
-/// policy, then the first action of the plan to the goal latent.
-pub struct MpcPolicy {
-    encoder: Encoder,
+/// CEM-MPC as a feedback law on the latent: plans to the target `(h*, v*)` through the learned
+/// dynamics `g` and applies the plan's first action, warm-starting each plan from the last one.
+pub struct CemMpc {
     dynamics: Dynamics,
     device: Device,
     config: MpcConfig,
     dt: f64,
+    /// Seeded once, so a whole evaluation is deterministic.
     rng: ChaCha8Rng,
+    /// The last plan, `[H][du]` (empty at the start of an episode).
     plan: Vec<Vec<f64>>,
-    h_target: Vec<f64>,
-    v_target: Vec<f64>,
-    h_prev: Option<Vec<f64>>,
-    h: Vec<f64>,
-    /// Wall time of each `act` call (encode + plan), seconds.
-    pub control_times_s: Vec<f64>,
 }
 
-impl MpcPolicy {
+impl CemMpc {
     pub fn new(
-        encoder: Encoder,
         dynamics: Dynamics,
         device: Device,
         config: MpcConfig,
@@ -195,60 +186,34 @@ impl MpcPolicy {
         config.validate()?;
         Ok(Self {
             rng: ChaCha8Rng::seed_from_u64(config.seed),
-            encoder,
             dynamics,
             device,
             config,
             dt,
             plan: vec![],
-            h_target: vec![],
-            v_target: vec![],
-            h_prev: None,
-            h: vec![],
-            control_times_s: vec![],
         })
-    }
-
-    fn encode(&self, frame: &[u8]) -> Vec<f64> {
-        let h = self
-            .encoder
-            .forward(frames_to_tensor(std::iter::once(frame), &self.device));
-        to_vec(h).into_iter().map(f64::from).collect()
-    }
-
-    fn start(&mut self) {
-        self.h_prev = None;
-        let du = self.encoder.latent_dim();
-        self.plan = vec![vec![0.0; du]; self.config.horizon];
     }
 }
 
-impl Policy for MpcPolicy {
-    fn reset(&mut self, goal_frame: &[u8], _goal: &State) {
-        self.start();
-        self.h_target = self.encode(goal_frame);
-        self.v_target = vec![0.0; self.h_target.len()];
+impl FeedbackLaw for CemMpc {
+    fn reset(&mut self) {
+        self.plan.clear();
     }
 
-    fn start_tracking(&mut self) {
-        self.start();
-    }
-
-    fn set_target(&mut self, target: &Target<'_>) {
-        self.h_target = target.h.to_vec();
-        self.v_target = target.v.to_vec();
-    }
-
-    fn act(&mut self, frame: &[u8], _state: &State, u: &mut [f64]) {
-        let start = Instant::now();
-        let h = self.encode(frame);
-        let v: Vec<f64> = match &self.h_prev {
-            Some(prev) => h.iter().zip(prev).map(|(a, b)| (a - b) / self.dt).collect(),
-            None => vec![0.0; h.len()],
-        };
-        // Warm start: the previous plan shifted by one step, the last step repeated.
+    fn feedback(
+        &mut self,
+        h: &[f64],
+        v: &[f64],
+        h_target: &[f64],
+        v_target: &[f64],
+        u: &mut [f64],
+    ) {
+        // Warm start: the previous plan shifted by one step, the last step repeated; an
+        // episode starts from doing nothing.
         let mut warm = std::mem::take(&mut self.plan);
-        if warm.len() > 1 {
+        if warm.is_empty() {
+            warm = vec![vec![0.0; h.len()]; self.config.horizon];
+        } else if warm.len() > 1 {
             warm.rotate_left(1);
             let last = warm[warm.len() - 2].clone();
             if let Some(end) = warm.last_mut() {
@@ -263,9 +228,9 @@ impl Policy for MpcPolicy {
         self.plan = cem_plan(
             &step,
             &self.config,
-            &h,
-            &v,
-            (&self.h_target, &self.v_target),
+            h,
+            v,
+            (h_target, v_target),
             warm,
             &mut self.rng,
             &self.device,
@@ -277,18 +242,12 @@ impl Policy for MpcPolicy {
                 0.0
             };
         }
-        self.h_prev = Some(h.clone());
-        self.h = h;
-        self.control_times_s.push(start.elapsed().as_secs_f64());
-    }
-
-    fn latent(&self) -> Vec<f64> {
-        self.h.clone()
-    }
-    fn goal_latent(&self) -> Vec<f64> {
-        self.h_target.clone()
     }
 }
+
+/// CEM-MPC on encoded frames: `h = e(frame)`, `v = (h - h_prev)/dt` and the targets exactly as
+/// latent PD, then [`CemMpc`].
+pub type MpcPolicy = LatentPolicy<CemMpc>;
 
 #[cfg(test)]
 mod tests {

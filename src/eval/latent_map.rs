@@ -318,10 +318,18 @@ mod tests {
     fn determinants_of_2x2_and_3x3_maps() {
         assert_eq!(determinant(&[vec![2.0, 1.0], vec![1.0, 3.0]]), Some(5.0));
         // A 3x3 signed permutation (h -> (-h2, h1, h0)) has det +1; numpy: 1.0.
-        let p = [vec![0.0, 0.0, -1.0], vec![0.0, 1.0, 0.0], vec![1.0, 0.0, 0.0]];
+        let p = [
+            vec![0.0, 0.0, -1.0],
+            vec![0.0, 1.0, 0.0],
+            vec![1.0, 0.0, 0.0],
+        ];
         assert_eq!(determinant(&p), Some(1.0));
         // numpy.linalg.det([[1,2,3],[0,1,4],[5,6,0]]) = 1.0
-        let m = [vec![1.0, 2.0, 3.0], vec![0.0, 1.0, 4.0], vec![5.0, 6.0, 0.0]];
+        let m = [
+            vec![1.0, 2.0, 3.0],
+            vec![0.0, 1.0, 4.0],
+            vec![5.0, 6.0, 0.0],
+        ];
         assert!((determinant(&m).unwrap() - 1.0).abs() < 1e-12);
         assert_eq!(determinant(&[vec![1.0, 2.0]]), None);
     }

@@ -8,7 +8,7 @@ use burn::tensor::Device;
 use super::plots::{save_episode_gif, save_latent_plot, save_reach_plot};
 use super::reach::{MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise};
 use crate::control::{
-    FeedbackLaw, LatentPdPolicy, LatentPidPolicy, LatentPolicy, MpcConfig, MpcPolicy,
+    CemMpc, FeedbackLaw, LatentPdPolicy, LatentPidPolicy, LatentPolicy, MpcConfig, MpcPolicy,
     OraclePdPolicy, PdController, Pid, Policy, oracle_gains,
 };
 use crate::error::{Error, Result};
@@ -160,8 +160,8 @@ pub fn evaluate_run_with(
         }
         (Controller::Mpc(mpc), TrainedModel::Procl(model)) => {
             let dt = env.make().control_dt_s();
-            let mut policy =
-                MpcPolicy::new(model.encoder, model.dynamics, device, mpc.clone(), dt)?;
+            let law = CemMpc::new(model.dynamics, device.clone(), mpc.clone(), dt)?;
+            let mut policy = MpcPolicy::new(model.encoder, device, law, dt);
             let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
             let label = format!("{} + MPC", config.method.label());
             (label, records, policy.control_times_s)
