@@ -2,14 +2,15 @@
 //! eval.json schema, and the demo end to end on a tiny budget (the CI smoke test).
 
 use procl::control::{LatentPdPolicy, MpcConfig, PdController, Policy};
-use procl::data::{CollectConfig, collect};
 use procl::envs::EnvKind;
 use procl::eval::{
     Controller, ReachConfig, evaluate_oracle, evaluate_run, evaluate_run_with, reach_tasks,
     run_episode,
 };
 use procl::model::cpu_device;
-use procl::train::{Method, Preset, RunPaths, TrainConfig, train};
+use procl::train::{Method, Preset, TrainConfig};
+
+use super::support::tiny_procl_run;
 
 #[test]
 fn oracle_reaches_every_goal_in_every_env() {
@@ -100,25 +101,7 @@ fn closed_loop_encodes_each_frame_once() {
 fn eval_writes_the_documented_outputs() {
     let dir = tempfile::tempdir().unwrap();
     let env = EnvKind::PointMass;
-    let data = collect(
-        &CollectConfig {
-            transitions: 120,
-            episode_len: 40,
-            ..CollectConfig::new(env, 1)
-        },
-        |_| {},
-    )
-    .unwrap();
-    let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, env);
-    (
-        config.steps,
-        config.batch_size,
-        config.checkpoint_every,
-        config.orientation_search_every,
-    ) = (2, 8, 2, 1);
-    config.model.encoder.trunk_channels = [4, 4];
-    let run = RunPaths::new(dir.path().join("run"));
-    train(&config, &data, &run, false, &cpu_device(), |_, _| {}).unwrap();
+    let run = tiny_procl_run(dir.path(), env, (120, 40), (2, 8, 1));
     // The search logs every window's risk per candidate: a header, then one line per window
     // (every step here), the step and the 8 signed permutations of a 2-D latent.
     let windows = std::fs::read_to_string(run.dir.join("orientation_windows.csv")).unwrap();

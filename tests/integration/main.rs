@@ -8,5 +8,6 @@ mod envs;
 mod fetch;
 mod nvae;
 mod research;
+mod support;
 mod track;
 mod train;

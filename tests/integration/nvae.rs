@@ -9,6 +9,7 @@ use procl::model::{EncoderHead, cpu_device};
 use procl::train::{Method, Preset, RunPaths, TrainConfig, config_from_table, train};
 
 use super::cli::{assert_train_outputs, fails_with, path_str, succeeds};
+use super::support::train_error;
 
 fn point_mass_data(transitions: usize) -> Dataset {
     let config = CollectConfig {
@@ -145,16 +146,7 @@ fn same_seed_gives_the_same_nvae_and_resume_is_refused_for_a_changed_config() {
     let mut other = config.clone();
     other.steps = 6;
     other.nvae.as_mut().unwrap().recon_std = 0.2;
-    let err = train(
-        &other,
-        &data,
-        &RunPaths::new(&a),
-        true,
-        &cpu_device(),
-        |_, _| {},
-    )
-    .unwrap_err()
-    .to_string();
+    let err = train_error(&other, &data, &a, true);
     assert!(err.contains("resume"), "{err}");
     // A ProCL-only loader names the problem.
     let err = RunPaths::new(&a)

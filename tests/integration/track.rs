@@ -2,13 +2,13 @@
 //! tracking loop's encoding budget and outputs, and bad input on the command line.
 
 use procl::control::{LatentPdPolicy, OraclePdPolicy, PdController, Policy, oracle_gains};
-use procl::data::{
-    CollectConfig, Dataset, PathShape, ReferenceConfig, collect, generate_reference,
-};
+use procl::data::{Dataset, PathShape, ReferenceConfig, generate_reference};
 use procl::envs::EnvKind;
 use procl::eval::{Reference, track_episode, track_run};
 use procl::model::cpu_device;
-use procl::train::{Method, Preset, RunPaths, TrainConfig, train};
+use procl::train::{Method, Preset, TrainConfig};
+
+use super::support::tiny_procl_run;
 
 fn small_reference(env: EnvKind, shape: PathShape, seed: u64) -> ReferenceConfig {
     ReferenceConfig {
@@ -126,25 +126,7 @@ fn latent_tracking_encodes_each_frame_once_and_uses_the_references() {
 fn track_writes_its_outputs_and_refuses_another_envs_demo() {
     let dir = tempfile::tempdir().unwrap();
     let env = EnvKind::PointMass;
-    let data = collect(
-        &CollectConfig {
-            transitions: 120,
-            episode_len: 40,
-            ..CollectConfig::new(env, 1)
-        },
-        |_| {},
-    )
-    .unwrap();
-    let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, env);
-    (
-        config.steps,
-        config.batch_size,
-        config.checkpoint_every,
-        config.orientation_search_every,
-    ) = (2, 8, 2, 1);
-    config.model.encoder.trunk_channels = [4, 4];
-    let run = RunPaths::new(dir.path().join("run"));
-    train(&config, &data, &run, false, &cpu_device(), |_, _| {}).unwrap();
+    let run = tiny_procl_run(dir.path(), env, (120, 40), (2, 8, 1));
 
     let demo_path = dir.path().join("circle.npz");
     let demo = generate_reference(&small_reference(env, PathShape::Circle, 0), |_| {}).unwrap();
@@ -198,25 +180,7 @@ fn track_writes_its_outputs_and_refuses_another_envs_demo() {
 fn fetch_tracking_draws_its_paths_in_3d() {
     let dir = tempfile::tempdir().unwrap();
     let env = EnvKind::Fetch;
-    let data = collect(
-        &CollectConfig {
-            transitions: 60,
-            episode_len: 20,
-            ..CollectConfig::new(env, 1)
-        },
-        |_| {},
-    )
-    .unwrap();
-    let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, env);
-    (
-        config.steps,
-        config.batch_size,
-        config.checkpoint_every,
-        config.orientation_search_every,
-    ) = (1, 4, 1, 0);
-    config.model.encoder.trunk_channels = [4, 4];
-    let run = RunPaths::new(dir.path().join("run"));
-    train(&config, &data, &run, false, &cpu_device(), |_, _| {}).unwrap();
+    let run = tiny_procl_run(dir.path(), env, (60, 20), (1, 4, 0));
     let demo_path = dir.path().join("fetch.npz");
     let demo = ReferenceConfig {
         episodes: 1,

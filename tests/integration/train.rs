@@ -4,6 +4,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use super::support::{train_error, train_into};
 use procl::data::{CollectConfig, Dataset, collect};
 use procl::envs::EnvKind;
 use procl::model::{EncoderHead, ProclModel, cpu_device, frames_to_tensor, to_vec};
@@ -42,18 +43,6 @@ fn tiny_config(steps: u64, checkpoint_every: u64) -> TrainConfig {
     // checkpoint_every; search at every checkpoint instead.
     config.orientation_search_every = checkpoint_every;
     config
-}
-
-fn train_into(config: &TrainConfig, data: &Dataset, dir: &Path, resume: bool) {
-    train(
-        config,
-        data,
-        &RunPaths::new(dir),
-        resume,
-        &cpu_device(),
-        |_, _| {},
-    )
-    .unwrap();
 }
 
 /// The rows of a run's metrics.csv without the wall-clock `seconds` column, checking the header.
@@ -199,16 +188,7 @@ fn same_config_and_seed_give_identical_checkpoints() {
     train_into(&other, &data, &c, false);
     assert!(checkpoint_contents(&a).1 != checkpoint_contents(&c).1);
     // A second fresh run into a finished folder refuses to overwrite it.
-    let err = train(
-        &config,
-        &data,
-        &RunPaths::new(&a),
-        false,
-        &cpu_device(),
-        |_, _| {},
-    )
-    .unwrap_err()
-    .to_string();
+    let err = train_error(&config, &data, &a, false);
     assert!(
         err.contains("already holds a trained model") && err.contains("--resume"),
         "{err}"
@@ -363,16 +343,7 @@ fn bad_configs_are_rejected_by_field_name() {
             learning_rate: lr,
             ..tiny_config(2, 1)
         };
-        let err = train(
-            &config,
-            &data,
-            &RunPaths::new(&run),
-            false,
-            &cpu_device(),
-            |_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let err = train_error(&config, &data, &run, false);
         assert!(err.contains("learning_rate"), "{err}");
     }
     assert!(!run.exists());
@@ -383,16 +354,7 @@ fn dataset_of_another_env_is_rejected() {
     let reacher = dataset(EnvKind::Reacher, 40, 20, 0);
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
-    let err = train(
-        &tiny_config(2, 1),
-        &reacher,
-        &RunPaths::new(&run),
-        false,
-        &cpu_device(),
-        |_, _| {},
-    )
-    .unwrap_err()
-    .to_string();
+    let err = train_error(&tiny_config(2, 1), &reacher, &run, false);
     assert!(
         err.contains("reacher") && err.contains("point-mass"),
         "{err}"
