@@ -6,7 +6,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta};
-use crate::envs::{EnvKind, FRAME_PX, Frame};
+use crate::envs::{Env, EnvKind, FRAME_PX, Frame, State};
 use crate::error::{Error, Result};
 
 /// What to collect.
@@ -67,37 +67,85 @@ impl CollectConfig {
     }
 }
 
+/// A dataset being rolled out: the arrays of `episodes` episodes of `steps` steps of one env,
+/// filled one step at a time (by [`collect`] and by the demonstration generator).
+pub(super) struct Recording {
+    env: EnvKind,
+    obs: Array5<u8>,
+    actions: Array3<f32>,
+    states: Array3<f32>,
+    frame: Frame,
+}
+
+impl Recording {
+    pub(super) fn new(env: &dyn Env, episodes: usize, steps: usize) -> Self {
+        let (du, dq) = (env.action_dim(), env.config_dim());
+        Self {
+            env: env.kind(),
+            obs: Array5::zeros((episodes, steps + 1, FRAME_PX, FRAME_PX, 3)),
+            actions: Array3::zeros((episodes, steps, du)),
+            states: Array3::zeros((episodes, steps + 1, 2 * dq)),
+            frame: [0; crate::envs::FRAME_BYTES],
+        }
+    }
+
+    /// Renders `env` and stores the frame and the true state as frame `t` of `episode`;
+    /// returns the state.
+    pub(super) fn observe(&mut self, env: &mut dyn Env, episode: usize, t: usize) -> State {
+        env.render(&mut self.frame);
+        let flat = self.obs.slice_mut(ndarray::s![episode, t, .., .., ..]);
+        // A freshly zeroed Array5 is in standard layout, so each frame slice is contiguous.
+        if let Some(dst) = flat.into_slice() {
+            dst.copy_from_slice(&self.frame);
+        }
+        let state = env.state();
+        for (i, x) in state.to_vec().into_iter().enumerate() {
+            self.states[[episode, t, i]] = x as f32;
+        }
+        state
+    }
+
+    /// Stores the action taken at step `t` of `episode`.
+    pub(super) fn act(&mut self, episode: usize, t: usize, u: &[f64]) {
+        for (i, &a) in u.iter().enumerate() {
+            self.actions[[episode, t, i]] = a as f32;
+        }
+    }
+
+    /// The finished dataset, with its metadata.
+    pub(super) fn finish(self, control_dt_s: f64, seed: u64, source: String) -> Result<Dataset> {
+        let meta = DatasetMeta {
+            format_version: DATASET_FORMAT_VERSION,
+            env: self.env,
+            control_dt_s,
+            seed,
+            source,
+            procl_version: env!("CARGO_PKG_VERSION").into(),
+        };
+        Dataset::new(meta, self.obs, self.actions, self.states)
+    }
+}
+
 /// Collects a dataset; `progress` is called with the number of finished transitions.
 pub fn collect(config: &CollectConfig, mut progress: impl FnMut(usize)) -> Result<Dataset> {
     let episodes = config.episodes()?;
     let steps = config.episode_len.min(config.transitions);
     let mut env = config.env.make();
-    let (du, dq) = (env.action_dim(), env.config_dim());
-    let mut obs = Array5::<u8>::zeros((episodes, steps + 1, FRAME_PX, FRAME_PX, 3));
-    let mut actions = Array3::<f32>::zeros((episodes, steps, du));
-    let mut states = Array3::<f32>::zeros((episodes, steps + 1, 2 * dq));
-    let mut frame: Frame = [0; crate::envs::FRAME_BYTES];
+    let du = env.action_dim();
+    let mut recording = Recording::new(env.as_ref(), episodes, steps);
 
     for episode in 0..episodes {
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
         rng.set_stream(episode as u64);
         let start = env.sample_config(&mut rng);
-        env.set_state(&crate::envs::State {
+        env.set_state(&State {
             qd: vec![0.0; start.len()],
             q: start,
         })?;
         let mut action = vec![0.0; du];
         let mut hold_left = 0;
         for t in 0..=steps {
-            env.render(&mut frame);
-            let flat = obs.slice_mut(ndarray::s![episode, t, .., .., ..]);
-            // A freshly zeroed Array5 is in standard layout, so each frame slice is contiguous.
-            if let Some(dst) = flat.into_slice() {
-                dst.copy_from_slice(&frame);
-            }
-            for (i, x) in env.state().to_vec().into_iter().enumerate() {
-                states[[episode, t, i]] = x as f32;
-            }
+            recording.observe(env.as_mut(), episode, t);
             if t == steps {
                 break;
             }
@@ -108,22 +156,12 @@ pub fn collect(config: &CollectConfig, mut progress: impl FnMut(usize)) -> Resul
                 hold_left = rng.random_range(1..=config.max_hold_steps);
             }
             hold_left -= 1;
-            for (i, &a) in action.iter().enumerate() {
-                actions[[episode, t, i]] = a as f32;
-            }
+            recording.act(episode, t, &action);
             env.step(&action);
         }
         progress((episode + 1) * steps);
     }
-    let meta = DatasetMeta {
-        format_version: DATASET_FORMAT_VERSION,
-        env: config.env,
-        control_dt_s: env.control_dt_s(),
-        seed: config.seed,
-        source: "random-control".into(),
-        procl_version: env!("CARGO_PKG_VERSION").into(),
-    };
-    Dataset::new(meta, obs, actions, states)
+    recording.finish(env.control_dt_s(), config.seed, "random-control".into())
 }
 
 #[cfg(test)]

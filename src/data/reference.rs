@@ -9,13 +9,13 @@
 
 use std::f64::consts::TAU;
 
-use ndarray::{Array3, Array5};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta};
+use super::collect::Recording;
+use super::store::Dataset;
 use crate::control::oracle_gains;
-use crate::envs::{EnvKind, FRAME_BYTES, FRAME_PX, Frame, State};
+use crate::envs::{EnvKind, State};
 use crate::error::{Error, Result};
 
 /// The family of reference paths.
@@ -231,53 +231,31 @@ pub fn generate_reference(
         return Err(Error::config("steps", "must be at least 2"));
     }
     let mut env = config.env.make();
-    let (du, dq, dt) = (env.action_dim(), env.config_dim(), env.control_dt_s());
+    let (du, dt) = (env.action_dim(), env.control_dt_s());
     let ranges = env.config_ranges();
     let expert = oracle_gains(config.env);
-    let (episodes, steps) = (config.episodes, config.steps);
-    let mut obs = Array5::<u8>::zeros((episodes, steps + 1, FRAME_PX, FRAME_PX, 3));
-    let mut actions = Array3::<f32>::zeros((episodes, steps, du));
-    let mut states = Array3::<f32>::zeros((episodes, steps + 1, 2 * dq));
-    let mut frame: Frame = [0; FRAME_BYTES];
+    let steps = config.steps;
+    let mut recording = Recording::new(env.as_ref(), config.episodes, steps);
     let mut u = vec![0.0; du];
-    for episode in 0..episodes {
+    for episode in 0..config.episodes {
         let path = random_path(config, &ranges, dt, episode);
         let (q, qd) = path.at(0.0);
         env.set_state(&State { q, qd })?;
         for t in 0..=steps {
-            env.render(&mut frame);
-            if let Some(dst) = obs
-                .slice_mut(ndarray::s![episode, t, .., .., ..])
-                .into_slice()
-            {
-                dst.copy_from_slice(&frame);
-            }
-            let state = env.state();
-            for (i, x) in state.to_vec().into_iter().enumerate() {
-                states[[episode, t, i]] = x as f32;
-            }
+            let state = recording.observe(env.as_mut(), episode, t);
             if t == steps {
                 break;
             }
             // Aim at where the path is one step ahead: the state this action produces.
             let (q_ref, qd_ref) = path.at((t + 1) as f64 * dt);
             expert.control(&state.q, &state.qd, &q_ref, &qd_ref, &mut u);
-            for (i, &a) in u.iter().enumerate() {
-                actions[[episode, t, i]] = a as f32;
-            }
+            recording.act(episode, t, &u);
             env.step(&u);
         }
         progress(episode + 1);
     }
-    let meta = DatasetMeta {
-        format_version: DATASET_FORMAT_VERSION,
-        env: config.env,
-        control_dt_s: dt,
-        seed: config.seed,
-        source: format!("demonstration:{}", config.shape.name()),
-        procl_version: env!("CARGO_PKG_VERSION").into(),
-    };
-    Dataset::new(meta, obs, actions, states)
+    let source = format!("demonstration:{}", config.shape.name());
+    recording.finish(dt, config.seed, source)
 }
 
 #[cfg(test)]
