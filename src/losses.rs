@@ -571,41 +571,27 @@ mod tests {
         //   V(z_next - z*) = 1.5^2 + 0.5^2 + 0.1 (1 + 1) = 2.7
         //   (2.7 - 0.6) / 0.02 = 105. Row 1 (target 0): V 2 -> 0.5, clipped to 0.
         //   Mean over the 2 rows: 52.5.
-        let expanding = lyapunov_risk(
-            pair(&[1.0, 0.0, 1.0, 1.0], &[0.0, 1.0, 0.0, 0.0]),
-            pair(&[2.0, 0.0, 0.5, 0.5], &[1.0, 1.0, 0.0, 0.0]),
-            pair(&[0.5, 0.5, 0.0, 0.0], &[0.0; 4]),
-            q_h,
-            q_v,
-            dt_r,
-            false,
-        );
-        let got = scalar(expanding);
+        // The expanding batch, its latent scaled by `scale`, under either risk.
+        let expanding = |scale: f32, normalise: bool| {
+            let s = |v: &[f32]| v.iter().map(|x| scale * x).collect::<Vec<f32>>();
+            scalar(lyapunov_risk(
+                pair(&s(&[1.0, 0.0, 1.0, 1.0]), &s(&[0.0, 1.0, 0.0, 0.0])),
+                pair(&s(&[2.0, 0.0, 0.5, 0.5]), &s(&[1.0, 1.0, 0.0, 0.0])),
+                pair(&s(&[0.5, 0.5, 0.0, 0.0]), &[0.0; 4]),
+                q_h,
+                q_v,
+                dt_r,
+                normalise,
+            ))
+        };
+        let got = expanding(1.0, false);
         assert!((got - 52.5).abs() < 1e-3, "risk {got}");
         // Normalised: divided by the mean V(z_now - z*) = (0.6 + 2) / 2 = 1.3 -> 40.3846.
-        let normalised = lyapunov_risk(
-            pair(&[1.0, 0.0, 1.0, 1.0], &[0.0, 1.0, 0.0, 0.0]),
-            pair(&[2.0, 0.0, 0.5, 0.5], &[1.0, 1.0, 0.0, 0.0]),
-            pair(&[0.5, 0.5, 0.0, 0.0], &[0.0; 4]),
-            q_h,
-            q_v,
-            dt_r,
-            true,
-        );
-        let got = scalar(normalised);
+        let got = expanding(1.0, true);
         assert!((got - 52.5 / 1.3).abs() < 1e-3, "normalised risk {got}");
         // ... and does not change when the whole latent is scaled by 3 (V scales by 9 in both).
-        let x3 = |v: &[f32]| v.iter().map(|x| 3.0 * x).collect::<Vec<f32>>();
-        let scaled = lyapunov_risk(
-            pair(&x3(&[1.0, 0.0, 1.0, 1.0]), &x3(&[0.0, 1.0, 0.0, 0.0])),
-            pair(&x3(&[2.0, 0.0, 0.5, 0.5]), &x3(&[1.0, 1.0, 0.0, 0.0])),
-            pair(&x3(&[0.5, 0.5, 0.0, 0.0]), &[0.0; 4]),
-            q_h,
-            q_v,
-            dt_r,
-            true,
-        );
-        assert!((scalar(scaled) - got).abs() < 1e-3);
+        let scaled = expanding(3.0, true);
+        assert!((scaled - got).abs() < 1e-3);
     }
 
     #[test]
