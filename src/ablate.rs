@@ -84,16 +84,14 @@ impl Grid {
         })
     }
 
-    /// The resolved training configuration of every cell for `env` (`[base]`, then the cell's
-    /// keys, over the preset), or the first cell that does not resolve, by name.
+    /// The resolved training configuration of every cell for `env` (the cell's keys deep-merged
+    /// over `[base]`, over the preset), or the first cell that does not resolve, by name.
     pub fn cell_configs(&self, env: crate::envs::EnvKind) -> Result<Vec<(String, TrainConfig)>> {
         self.cells
             .iter()
             .map(|(name, cell)| {
                 let mut table = self.base.clone();
-                for (k, v) in cell {
-                    table.insert(k.clone(), v.clone());
-                }
+                crate::train::merge(&mut table, cell.clone());
                 config_from_table(table, env, None)
                     .map(|config| (name.clone(), config))
                     .map_err(|e| Error::config(format!("cell `{name}`"), e.to_string()))

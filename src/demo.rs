@@ -4,15 +4,17 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use crate::data::{CollectConfig, Dataset, collect};
+use crate::data::CollectConfig;
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::eval::{
     LatentDiagnostics, MethodSummary, ReachConfig, ReachReport, evaluate_run, save_reach_plot,
     write_diagnostics,
 };
-use crate::model::cpu_device;
-use crate::train::{Method, Preset, RunPaths, TrainConfig, train};
+use crate::pipeline::{
+    Outcome, collect_or_reuse, reach_protocol, set_budget, shrink_networks, train_or_reuse,
+};
+use crate::train::{Method, Preset, RunPaths, TrainConfig};
 
 /// Budgets of a demo run.
 #[derive(Debug, Clone)]
@@ -83,99 +85,45 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
     std::fs::create_dir_all(&config.out).map_err(|e| Error::io(&config.out, e))?;
     let data_path = config.out.join("point-mass.npz");
     let clock = Instant::now();
-    let dataset = if data_path.exists() {
-        log(&format!("reusing {}", data_path.display()));
-        Dataset::load(&data_path)?
-    } else {
-        let collect_config = CollectConfig {
-            transitions: config.transitions,
-            episode_len: config.episode_len,
-            ..CollectConfig::new(env, config.seed)
-        };
-        let data = collect(&collect_config, |_| {})?;
-        data.save(&data_path, false)?;
-        log(&format!(
-            "collected {} transitions in {:.1} s",
-            data.transitions(),
-            clock.elapsed().as_secs_f64()
-        ));
-        data
+    let collect_config = CollectConfig {
+        transitions: config.transitions,
+        episode_len: config.episode_len,
+        ..CollectConfig::new(env, config.seed)
     };
+    let (dataset, outcome) = collect_or_reuse(&collect_config, &data_path)?;
+    log(&match outcome {
+        Outcome::Reused => format!("reusing {}", data_path.display()),
+        Outcome::Ran => format!(
+            "collected {} transitions in {:.1} s",
+            dataset.transitions(),
+            clock.elapsed().as_secs_f64()
+        ),
+    });
 
-    let mut protocol = ReachConfig::for_env(env, 1000);
-    protocol.episodes = config.eval_episodes;
-    if let Some(h) = config.eval_horizon {
-        protocol.horizon = h;
-    }
+    let protocol = reach_protocol(env, config.eval_episodes, config.eval_horizon);
     let mut rows = vec![];
     let mut oracle = None;
     for method in [Method::Procl, Method::Pc3] {
-        let name = match method {
-            Method::Procl => "procl",
-            Method::Pc3 => "pc3",
-            Method::Nvae => "nvae",
-        };
+        let name = method.dir_name();
         let run = RunPaths::new(config.out.join(name));
         let mut train_config = TrainConfig::preset(Preset::Procl, method, env);
         train_config.seed = config.seed;
-        train_config.steps = config.train_steps;
-        train_config.batch_size = config.batch_size;
-        train_config.checkpoint_every = if config.train_steps >= 500 {
-            500
-        } else {
-            config.train_steps
-        };
-        if !train_config
-            .checkpoint_every
-            .is_multiple_of(train_config.orientation_search_every.max(1))
-        {
-            // Small budgets: search (and checkpoint) on the same cadence.
-            train_config.orientation_search_every = train_config
-                .checkpoint_every
-                .min(train_config.orientation_search_every);
-            train_config.checkpoint_every = train_config.orientation_search_every.max(1);
-        }
+        set_budget(
+            &mut train_config,
+            config.train_steps,
+            Some(config.batch_size),
+        );
         if config.tiny_model {
-            train_config.model.encoder.trunk_channels = [8, 8];
-            train_config.model.encoder.head = crate::model::EncoderHead::SoftArgmax {
-                keypoints: 4,
-                hidden: 0,
-            };
+            shrink_networks(&mut train_config);
         }
-        let finished = run.checkpoint().exists()
-            && run.load_config().ok().as_ref() == Some(&train_config)
-            && is_complete(&run, train_config.steps);
-        let train_seconds = if finished {
-            log(&format!("reusing trained {name} in {}", run.dir.display()));
-            None
-        } else {
-            let resume =
-                run.checkpoint().exists() && run.load_config().ok().as_ref() == Some(&train_config);
-            if run.checkpoint().exists() && !resume {
-                return Err(Error::config(
-                    "demo",
-                    format!(
-                        "{} holds a run with another configuration; move it away or pick another --out",
-                        run.dir.display()
-                    ),
-                ));
-            }
-            let start = Instant::now();
-            let summary = train(
-                &train_config,
-                &dataset,
-                &run,
-                resume,
-                &cpu_device(),
-                |_, _| {},
-            )?;
-            log(&format!(
-                "trained {name}: {} steps in {:.0} s",
-                summary.steps_done,
-                start.elapsed().as_secs_f64()
-            ));
-            Some(start.elapsed().as_secs_f64())
-        };
+        let (train_seconds, outcome) = train_or_reuse(&train_config, &dataset, &run, |_, _| {})?;
+        log(&match (outcome, train_seconds) {
+            (Outcome::Ran, Some(seconds)) => format!(
+                "trained {name}: {} steps in {seconds:.0} s",
+                train_config.steps
+            ),
+            _ => format!("reusing trained {name} in {}", run.dir.display()),
+        });
         let diagnostics = write_diagnostics(&run)?;
         let report: ReachReport = evaluate_run(&run, &protocol, |_| {})?;
         let mut methods = report.methods.into_iter();
@@ -220,19 +168,6 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
     let json_path = config.out.join("summary.json");
     crate::fsutil::write_json(&json_path, &result)?;
     Ok(result)
-}
-
-/// Whether a run's metrics reach `steps`.
-fn is_complete(run: &RunPaths, steps: u64) -> bool {
-    std::fs::read_to_string(run.metrics())
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .last()
-                .and_then(|l| l.split(',').next())
-                .and_then(|s| s.parse::<u64>().ok())
-        })
-        == Some(steps)
 }
 
 fn write_report(path: &Path, rows: &[DemoRow], protocol: &ReachConfig) -> Result<()> {

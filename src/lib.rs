@@ -14,9 +14,11 @@ pub mod data;
 pub mod demo;
 pub mod envs;
 pub mod eval;
+pub mod experiment;
 pub mod losses;
 pub mod model;
 pub mod nvae;
+pub mod pipeline;
 pub mod train;
 
 pub use checkpoint::{Adam, CheckpointMeta, load_checkpoint, save_checkpoint};

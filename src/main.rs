@@ -1,6 +1,6 @@
 //! The `procl` command line: collect | info | render (more subcommands follow the data flow).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
@@ -11,6 +11,8 @@ use procl::data::{CollectConfig, collect};
 use procl::demo::DemoConfig;
 use procl::envs::EnvKind;
 use procl::eval::ReachConfig;
+use procl::experiment::{Event, ExperimentConfig};
+use procl::pipeline::Outcome;
 use procl::train::{Method, RunPaths};
 
 #[derive(Parser)]
@@ -150,6 +152,27 @@ enum Command {
         /// Training steps per method (default 600; quick: 15).
         #[arg(long)]
         steps: Option<u64>,
+    },
+    /// The paper's experiments on all three environments (resumable stages): datasets, ProCL,
+    /// PC3 and NewtonianVAE trained and evaluated, the latent-noise ablation, Fetch tracking,
+    /// report.html and summary.json.
+    Experiment {
+        /// Which experiment (`paper`).
+        #[arg(value_parser = ["paper"])]
+        name: String,
+        /// Every stage on a tiny budget (about a minute): the smoke test.
+        #[arg(long)]
+        quick: bool,
+        /// Output folder (finished stages in it are reused).
+        #[arg(long, default_value = "results")]
+        out: PathBuf,
+        /// Run nothing: rebuild report.html and summary.json from the finished stages.
+        #[arg(long)]
+        report_only: bool,
+        /// Rewrite this README's results section (between `<!-- experiment:begin -->` and
+        /// `<!-- experiment:end -->`), copying the main figures into docs/img/experiment beside it.
+        #[arg(long)]
+        readme: Option<PathBuf>,
     },
     /// Train and evaluate every cell of an ablation grid over several seeds (resumable).
     Ablate {
@@ -475,6 +498,60 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 clock.elapsed().as_secs_f64()
             );
         }
+        Command::Experiment {
+            name: _,
+            quick,
+            out,
+            report_only,
+            readme,
+        } => {
+            let config = if quick {
+                ExperimentConfig::quick(&out)
+            } else {
+                ExperimentConfig::paper(&out)
+            };
+            let mut bar: Option<ProgressBar> = None;
+            let summary =
+                procl::experiment::run_experiment(
+                    &config,
+                    report_only,
+                    &mut |event| match event {
+                        Event::Start(k, total, name) => println!("[{k}/{total}] {name}"),
+                        Event::Progress(done, of) => {
+                            let bar = bar.get_or_insert_with(|| progress_bar(of, "   "));
+                            bar.set_position(done);
+                        }
+                        Event::Finish(_, outcome, seconds) => {
+                            if let Some(bar) = bar.take() {
+                                bar.finish_and_clear();
+                            }
+                            let seconds = seconds.map_or("-".into(), |s| format!("{s:.0} s"));
+                            match outcome {
+                                Outcome::Ran => println!("      done in {seconds}"),
+                                Outcome::Reused => {
+                                    println!("      reused (took {seconds} when it ran)")
+                                }
+                            }
+                        }
+                    },
+                )?;
+            println!();
+            print!("{}", procl::experiment::markdown_table(&summary));
+            if let Some(readme) = readme {
+                procl::experiment::update_readme(
+                    &readme,
+                    Path::new("docs/img/experiment"),
+                    &config,
+                    &summary,
+                )?;
+                println!("rewrote the results section of {}", readme.display());
+            }
+            println!(
+                "\nreport: {} (stages took {:.0} s in all)",
+                out.join("report.html").display(),
+                summary.total_seconds
+            );
+        }
         Command::Ablate {
             env,
             grid,
@@ -500,25 +577,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             }
             std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
             let data_path = out.join(format!("{env}.npz"));
-            let data = if data_path.exists() {
-                procl::data::Dataset::load(&data_path)?
-            } else {
-                let defaults = CollectConfig::new(env, 0);
-                let transitions = transitions.unwrap_or(defaults.transitions);
-                let config = CollectConfig {
-                    transitions,
-                    episode_len: 100.min(transitions),
-                    ..defaults
-                };
-                let data = collect(&config, |_| {})?;
-                data.save(&data_path, false)?;
-                data
+            let defaults = CollectConfig::new(env, 0);
+            let transitions = transitions.unwrap_or(defaults.transitions);
+            let collect_config = CollectConfig {
+                transitions,
+                episode_len: 100.min(transitions),
+                ..defaults
             };
-            let mut protocol = ReachConfig::for_env(env, 1000);
-            protocol.episodes = episodes;
-            if let Some(h) = horizon {
-                protocol.horizon = h;
-            }
+            let (data, _) = procl::pipeline::collect_or_reuse(&collect_config, &data_path)?;
+            let protocol = procl::pipeline::reach_protocol(env, episodes, horizon);
             let results = procl::ablate::run_grid(
                 &grid,
                 &data,

@@ -40,18 +40,28 @@ impl Method {
             Method::Nvae => "NewtonianVAE",
         }
     }
+
+    /// The method's name on the command line and as a run folder: procl, pc3, nvae.
+    pub fn dir_name(self) -> &'static str {
+        match self {
+            Method::Procl => "procl",
+            Method::Pc3 => "pc3",
+            Method::Nvae => "nvae",
+        }
+    }
 }
 
 impl std::str::FromStr for Method {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "procl" => Ok(Method::Procl),
-            "pc3" => Ok(Method::Pc3),
-            "nvae" => Ok(Method::Nvae),
-            other => Err(Error::config(
+        match [Method::Procl, Method::Pc3, Method::Nvae]
+            .into_iter()
+            .find(|m| m.dir_name() == s)
+        {
+            Some(method) => Ok(method),
+            None => Err(Error::config(
                 "method",
-                format!("unknown method `{other}` (expected procl, pc3 or nvae)"),
+                format!("unknown method `{s}` (expected procl, pc3 or nvae)"),
             )),
         }
     }
@@ -176,6 +186,19 @@ impl TrainConfig {
                 config.orientation_search_every = 0;
                 config.batch_size = NVAE_BATCH_SIZE;
             }
+        }
+        if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
+            // Joint angles are not linear in any image position: a tanh layer after the
+            // keypoints, a latent started at unit spread and a variance floor that keeps the
+            // Lyapunov risk from shrinking it open the reacher's ring-shaped latent into a
+            // PD-controllable one (docs/method.md, Reacher-2D: 0% without, 50-60% with).
+            config.model.encoder.head = EncoderHead::SoftArgmax {
+                keypoints: 16,
+                hidden: 32,
+            };
+            config.model.encoder.init_latent_std = Some(1.0);
+            config.loss.variance_floor = Some(1.0);
+            config.loss.variance_weight = 10.0;
         }
         if env == EnvKind::Fetch {
             // spec.md 3: dt_R = 1 for Fetch (the env's control dt for the 2D envs).
@@ -681,7 +704,9 @@ impl Objective for ProclObjective<'_> {
     const METRICS: &'static [&'static str] = &LOSS_NAMES;
 
     fn prepare(&mut self, mut model: ProclModel) -> ProclModel {
-        if let Some(target_std) = self.config.model.encoder.init_latent_std {
+        if let Some(target_std) = self.config.model.encoder.init_latent_std
+            && target_std > 0.0
+        {
             let frames = scale_frames(self.data, self.config.seed, self.device);
             model.encoder = model.encoder.normalise_latent_scale(frames, target_std);
         }
@@ -947,7 +972,7 @@ pub fn config_from_table(
 }
 
 /// Deep-merges `over` into `base` (tables recursively, other values replaced).
-fn merge(base: &mut toml::Table, over: toml::Table) {
+pub(crate) fn merge(base: &mut toml::Table, over: toml::Table) {
     for (key, value) in over {
         match (base.get_mut(&key), value) {
             (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o),

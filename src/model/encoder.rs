@@ -45,6 +45,8 @@ pub struct EncoderConfig {
     /// batch of training frames (`None`: keep the fan-in initialisation). How large the fresh
     /// latent is against the transition std decides whether CPC can start; on the reacher
     /// the fan-in initialisation leaves `h` spread ~30x narrower than on the point mass.
+    /// `Some(0.0)` also keeps the fan-in initialisation (a config file's way to undo a preset
+    /// that sets it).
     #[serde(default)]
     pub init_latent_std: Option<f64>,
 }
@@ -76,11 +78,11 @@ impl EncoderConfig {
             ));
         }
         if let Some(std) = self.init_latent_std
-            && !(std.is_finite() && std > 0.0)
+            && !(std.is_finite() && std >= 0.0)
         {
             return Err(Error::config(
                 "model.encoder.init_latent_std",
-                format!("{std} is not a positive number"),
+                format!("{std} is not a number >= 0"),
             ));
         }
         match self.head {

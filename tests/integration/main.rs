@@ -5,6 +5,7 @@ mod cli;
 mod control;
 mod data;
 mod envs;
+mod experiment;
 mod fetch;
 mod nvae;
 mod research;

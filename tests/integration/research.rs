@@ -204,4 +204,12 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     assert_eq!(floor.loss.variance_floor, Some(1.0));
     assert_eq!(floor.steps, 1200);
     assert_eq!(floor.model.encoder.init_latent_std, Some(1.0));
+    // The reacher's procl preset is the design that cell measured.
+    let (_, cell) = configs
+        .iter()
+        .find(|(name, _)| name == "tanh-head_std1_floor=10")
+        .unwrap();
+    let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+    preset.steps = cell.steps;
+    assert_eq!(&preset, cell);
 }

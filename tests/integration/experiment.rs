@@ -1,0 +1,136 @@
+//! `procl experiment paper --quick`: every stage on all three environments, resumed without
+//! redoing a finished stage, the report's contents, the README section and a conflicting run.
+
+use procl::envs::EnvKind;
+use procl::experiment::{
+    Event, ExperimentConfig, README_BEGIN, README_END, run_experiment, update_readme,
+};
+use procl::pipeline::Outcome;
+
+/// Runs the experiment; the (stage, outcome) of every finished stage.
+fn run(
+    config: &ExperimentConfig,
+    report_only: bool,
+) -> (procl::experiment::Summary, Vec<(String, Outcome)>) {
+    let mut finished = vec![];
+    let summary = run_experiment(config, report_only, &mut |event| {
+        if let Event::Finish(name, outcome, _) = event {
+            finished.push((name.to_string(), outcome));
+        }
+    })
+    .unwrap();
+    (summary, finished)
+}
+
+#[test]
+fn quick_experiment_covers_every_env_and_method_and_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("results");
+    let config = ExperimentConfig::quick(&out);
+    let (summary, finished) = run(&config, false);
+
+    // 3 envs x (collect + 3 methods x (train + eval)), 2 ablation runs x 2, demonstrate, track.
+    assert_eq!(finished.len(), 27, "{finished:?}");
+    assert!(finished.iter().all(|(_, o)| *o == Outcome::Ran));
+    let envs: Vec<EnvKind> = summary.envs.iter().map(|e| e.env).collect();
+    assert_eq!(envs, [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch]);
+    for results in &summary.envs {
+        let methods: Vec<&str> = results.rows.iter().map(|r| r.method.as_str()).collect();
+        assert_eq!(
+            methods,
+            [
+                "ProCL + PD",
+                "PC3 + PD",
+                "NewtonianVAE + PID",
+                "oracle PD (true state)"
+            ],
+            "{}",
+            results.env
+        );
+        for row in &results.rows[..3] {
+            assert!(row.final_mean.is_finite() && row.control_time_us_p50.is_some());
+            assert!(row.train_seconds.is_some() && row.linear_r2.is_some());
+            let run = out.join(row.run.as_ref().unwrap());
+            for file in ["latent_traj.png", "latent_map.png", "eval.json"] {
+                assert!(run.join(file).exists(), "{}", run.join(file).display());
+            }
+        }
+        assert!(out.join(results.env.name()).join("reach_all.png").exists());
+    }
+    let eps: Vec<f64> = summary
+        .ablation
+        .iter()
+        .map(|a| a.latent_noise_std)
+        .collect();
+    assert_eq!(eps, [0.001, 0.01, 0.1]);
+    let tracking = summary.tracking.as_ref().unwrap();
+    assert_eq!((tracking.env, tracking.demonstrations), (EnvKind::Fetch, 1));
+    assert!(out.join("point-mass/ablation.png").exists());
+    assert!(out.join("fetch/procl/track.png").exists());
+    assert_eq!(summary.stage_seconds.len(), 27);
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    for needle in [
+        "fetch/reach_all.png",
+        "NewtonianVAE + PID",
+        "Tracking on Fetch-3D",
+        "point-mass/ablation.png",
+        "reacher/pc3/latent_traj.png",
+    ] {
+        assert!(html.contains(needle), "{needle}");
+    }
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(json["envs"].as_array().unwrap().len(), 3);
+
+    // A rerun reuses every stage and leaves the weights alone.
+    let weights = out.join("reacher/procl/model.safetensors");
+    let before = std::fs::read(&weights).unwrap();
+    let (again, finished) = run(&config, false);
+    assert_eq!(finished.len(), 27);
+    assert!(
+        finished.iter().all(|(_, o)| *o == Outcome::Reused),
+        "{finished:?}"
+    );
+    assert_eq!(std::fs::read(&weights).unwrap(), before);
+    assert_eq!(again.stage_seconds, summary.stage_seconds);
+
+    // --report-only runs nothing.
+    let (_, finished) = run(&config, true);
+    assert!(finished.is_empty());
+
+    // The README section is rewritten in place, the rest kept, the figures copied beside it.
+    let readme = dir.path().join("README.md");
+    std::fs::write(
+        &readme,
+        format!("# title\n\nbefore\n{README_BEGIN}\nold table\n{README_END}\nafter\n"),
+    )
+    .unwrap();
+    update_readme(&readme, std::path::Path::new("img"), &config, &summary).unwrap();
+    let text = std::fs::read_to_string(&readme).unwrap();
+    assert!(
+        text.starts_with("# title\n\nbefore\n")
+            && text.ends_with(&format!("{README_END}\nafter\n"))
+    );
+    assert!(!text.contains("old table") && text.contains("| fetch | ProCL + PD |"));
+    assert!(text.contains("](img/point-mass_reach.png)"));
+    assert!(dir.path().join("img/fetch_reach.png").exists());
+    std::fs::write(&readme, "no marks\n").unwrap();
+    let err = update_readme(&readme, std::path::Path::new("img"), &config, &summary)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("README.md") && err.contains(README_BEGIN),
+        "{err}"
+    );
+
+    // A run folder holding another configuration is refused, not overwritten.
+    let weights = out.join("point-mass/procl/model.safetensors");
+    let before = std::fs::read(&weights).unwrap();
+    let mut other = config.clone();
+    other.batch_size = Some(8);
+    let err = run_experiment(&other, false, &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("another configuration"), "{err}");
+    assert_eq!(std::fs::read(&weights).unwrap(), before);
+}
