@@ -255,6 +255,28 @@ pub fn save_checkpoint<M: Module>(
     })
 }
 
+/// The procl metadata in a checkpoint file's header.
+fn stored_meta(path: &Path, bytes: &[u8]) -> Result<StoredMeta> {
+    let corrupt = |message: String| Error::Checkpoint {
+        path: path.to_path_buf(),
+        message,
+    };
+    let (_, header) = safetensors::SafeTensors::read_metadata(bytes)
+        .map_err(|e| corrupt(format!("not a readable safetensors file ({e})")))?;
+    header
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get("procl"))
+        .and_then(|s| serde_json::from_str(s).ok())
+        .ok_or_else(|| corrupt("missing procl metadata".into()))
+}
+
+/// The metadata of the checkpoint at `path` (how many steps it holds) without loading weights.
+pub fn read_checkpoint_meta(path: &Path) -> Result<CheckpointMeta> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    Ok(stored_meta(path, &bytes)?.meta)
+}
+
 /// Loads weights into `model` (same architecture) and returns the Adam state and metadata.
 pub fn load_checkpoint<M: Module>(
     path: &Path,
@@ -271,15 +293,9 @@ pub fn load_checkpoint<M: Module>(
         }
         _ => Error::io(path, e),
     })?;
-    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
-        .map_err(|e| corrupt(format!("not a readable safetensors file ({e})")))?;
+    let stored_meta = stored_meta(path, &bytes)?;
     let tensors = safetensors::SafeTensors::deserialize(&bytes)
         .map_err(|e| corrupt(format!("not a readable safetensors file ({e})")))?;
-    let metadata = header.metadata().clone().unwrap_or_default();
-    let stored_meta: StoredMeta = metadata
-        .get("procl")
-        .and_then(|s| serde_json::from_str(s).ok())
-        .ok_or_else(|| corrupt("missing procl metadata".into()))?;
     let meta = stored_meta.meta.clone();
     let mut stored = BTreeMap::new();
     for (name, view) in tensors.tensors() {

@@ -13,6 +13,7 @@ use crate::eval::{
 };
 use crate::pipeline::{
     Outcome, collect_or_reuse, reach_protocol, set_budget, shrink_networks, train_or_reuse,
+    training_seconds,
 };
 use crate::train::{Method, Preset, RunPaths, TrainConfig};
 
@@ -90,7 +91,7 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
         episode_len: config.episode_len,
         ..CollectConfig::new(env, config.seed)
     };
-    let (dataset, outcome) = collect_or_reuse(&collect_config, &data_path)?;
+    let (dataset, outcome) = collect_or_reuse(&collect_config, &data_path, |_| {})?;
     log(&match outcome {
         Outcome::Reused => format!("reusing {}", data_path.display()),
         Outcome::Ran => format!(
@@ -116,13 +117,17 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
         if config.tiny_model {
             shrink_networks(&mut train_config);
         }
-        let (train_seconds, outcome) = train_or_reuse(&train_config, &dataset, &run, |_, _| {})?;
-        log(&match (outcome, train_seconds) {
-            (Outcome::Ran, Some(seconds)) => format!(
-                "trained {name}: {} steps in {seconds:.0} s",
-                train_config.steps
+        let outcome = train_or_reuse(&train_config, &dataset, &run, |_, _| {})?;
+        let train_seconds = (outcome == Outcome::Ran)
+            .then(|| training_seconds(&run))
+            .flatten();
+        log(&match outcome {
+            Outcome::Ran => format!(
+                "trained {name}: {} steps in {:.0} s",
+                train_config.steps,
+                train_seconds.unwrap_or(f64::NAN)
             ),
-            _ => format!("reusing trained {name} in {}", run.dir.display()),
+            Outcome::Reused => format!("reusing trained {name} in {}", run.dir.display()),
         });
         let diagnostics = write_diagnostics(&run)?;
         let report: ReachReport = evaluate_run(&run, &protocol, |_| {})?;

@@ -10,12 +10,12 @@ use crate::data::{CollectConfig, Dataset, PathShape, ReferenceConfig, generate_r
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::eval::{
-    LatentDiagnostics, MethodSummary, ReachConfig, TrackReport, save_reach_plot, track_run,
-    write_diagnostics,
+    EvalOutputs, LATENT_MAP, LatentDiagnostics, MethodSummary, ReachConfig, TRACK_FIGURE,
+    TrackReport, save_reach_plot, track_run, write_diagnostics,
 };
 use crate::pipeline::{
-    Outcome, collect_or_reuse, evaluate_or_reuse, reach_protocol, read_eval, set_budget,
-    shrink_networks, train_or_reuse,
+    Outcome, collect_or_reuse, evaluate_or_reuse, is_current, reach_protocol, read_eval,
+    set_budget, shrink_networks, train_or_reuse, training_seconds,
 };
 use crate::train::{Method, Preset, RunPaths, TrainConfig};
 
@@ -134,6 +134,10 @@ impl ExperimentConfig {
         }
     }
 
+    fn has_fetch(&self) -> bool {
+        self.envs.iter().any(|b| b.env == EnvKind::Fetch)
+    }
+
     fn demo_path(&self) -> PathBuf {
         self.env_dir(EnvKind::Fetch)
             .join(format!("demo-{}.npz", self.track_shape.name()))
@@ -155,11 +159,11 @@ impl ExperimentConfig {
                 self.train_config(budget, *method).validate()?;
             }
         }
-        for eps in &self.ablation_noise {
-            if !(eps.is_finite() && *eps >= 0.0) {
+        for (k, eps) in self.ablation_noise.iter().enumerate() {
+            if !(eps.is_finite() && *eps >= 0.0) || self.ablation_noise[..k].contains(eps) {
                 return Err(Error::config(
                     "ablation_noise",
-                    format!("{eps} is not a noise std >= 0"),
+                    format!("{eps} is not a new noise std >= 0"),
                 ));
             }
         }
@@ -198,7 +202,7 @@ impl StageTimes {
 struct Stages<'a> {
     path: PathBuf,
     times: StageTimes,
-    order: Vec<String>,
+    started: usize,
     total: usize,
     log: &'a mut dyn FnMut(Event),
 }
@@ -210,8 +214,8 @@ impl Stages<'_> {
         name: &str,
         work: impl FnOnce(&mut dyn FnMut(u64, u64)) -> Result<(T, Outcome)>,
     ) -> Result<T> {
-        self.order.push(name.to_string());
-        (self.log)(Event::Start(self.order.len(), self.total, name));
+        self.started += 1;
+        (self.log)(Event::Start(self.started, self.total, name));
         let start = Instant::now();
         let log = &mut self.log;
         let (value, outcome) = work(&mut |done, of| log(Event::Progress(done, of)))?;
@@ -235,21 +239,20 @@ pub fn run_experiment(
     std::fs::create_dir_all(&config.out).map_err(|e| Error::io(&config.out, e))?;
     let stages_path = config.out.join("stages.json");
     let times = match std::fs::read_to_string(&stages_path) {
-        Ok(text) => serde_json::from_str(&text)
-            .map_err(|e| Error::dataset(&stages_path, format!("not a stage log: {e}")))?,
-        Err(_) => StageTimes::default(),
+        Ok(text) => serde_json::from_str(&text).map_err(|e| {
+            Error::config(
+                stages_path.display().to_string(),
+                format!("not procl's stage log ({e}); move it away"),
+            )
+        })?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => StageTimes::default(),
+        Err(e) => return Err(Error::io(&stages_path, e)),
     };
-    let ablation_runs = config
-        .ablation_noise
-        .iter()
-        .filter(|eps| !config.ablation_run(**eps).1)
-        .count();
-    let total = config.envs.len() * (1 + 2 * config.methods.len()) + 2 * ablation_runs + 2;
     let mut stages = Stages {
         path: stages_path,
         times,
-        order: vec![],
-        total,
+        started: 0,
+        total: count_stages(config),
         log,
     };
     if !report_only {
@@ -258,6 +261,17 @@ pub fn run_experiment(
     let summary = summarise(config, &stages.times)?;
     write_outputs(config, &summary)?;
     Ok(summary)
+}
+
+/// How many stages [`run_stages`] runs for `config`.
+fn count_stages(config: &ExperimentConfig) -> usize {
+    let ablation_runs = config
+        .ablation_noise
+        .iter()
+        .filter(|eps| !config.ablation_run(**eps).1)
+        .count();
+    let tracking = if config.has_fetch() { 2 } else { 0 };
+    config.envs.len() * (1 + 2 * config.methods.len()) + 2 * ablation_runs + tracking
 }
 
 fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
@@ -271,8 +285,11 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
             episode_len: budget.episode_len,
             ..CollectConfig::new(env, config.seed)
         };
-        let data = stages.run(&format!("{env}/collect"), |_| {
-            collect_or_reuse(&collect_config, &data_path)
+        let episodes = collect_config.episodes()? as u64;
+        let data = stages.run(&format!("{env}/collect"), |progress| {
+            collect_or_reuse(&collect_config, &data_path, |done| {
+                progress(done as u64, episodes)
+            })
         })?;
         for method in &config.methods {
             let train_config = config.train_config(budget, *method);
@@ -288,32 +305,50 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
         }
     }
     let point_mass = &config.envs[0];
-    let data = Dataset::load(&config.env_dir(EnvKind::PointMass).join("data.npz"))?;
+    let mut data = None;
     for eps in &config.ablation_noise {
         let (run, is_main) = config.ablation_run(*eps);
         if is_main {
             continue;
         }
+        let data = match &mut data {
+            Some(data) => data,
+            None => data.insert(Dataset::load(
+                &config.env_dir(EnvKind::PointMass).join("data.npz"),
+            )?),
+        };
         let mut train_config = config.train_config(point_mass, Method::Procl);
         train_config.loss.latent_noise_std = *eps;
         train_and_evaluate(
             stages,
             &format!("point-mass/ablation/eps={eps}"),
             &train_config,
-            &data,
+            data,
             &run,
             &config.protocol(EnvKind::PointMass),
         )?;
     }
-    if config.envs.iter().any(|b| b.env == EnvKind::Fetch) {
+    if config.has_fetch() {
         let demo_path = config.demo_path();
         let reference = ReferenceConfig {
             episodes: config.track_demos,
             steps: config.track_steps,
             ..ReferenceConfig::new(EnvKind::Fetch, config.track_shape, config.seed)
         };
+        let source = format!("demonstration:{}", config.track_shape.name());
         stages.run("fetch/demonstrate", |progress| {
             if demo_path.exists() {
+                let demos = Dataset::load(&demo_path)?;
+                let found = (demos.meta.source.as_str(), demos.episodes(), demos.steps());
+                if found != (source.as_str(), reference.episodes, reference.steps) {
+                    return Err(Error::dataset(
+                        &demo_path,
+                        format!(
+                            "holds {} x {} steps of {}, tracking needs {} x {} of {source}; move it away",
+                            found.1, found.2, found.0, reference.episodes, reference.steps
+                        ),
+                    ));
+                }
                 return Ok(((), Outcome::Reused));
             }
             let demos = generate_reference(&reference, |done| {
@@ -324,7 +359,11 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
         })?;
         let run = config.run(EnvKind::Fetch, Method::Procl);
         stages.run("fetch/procl/track", |progress| {
-            if read_track(&run).is_some_and(|t| t.demo == demo_path) {
+            let current = read_track(&run).is_some_and(|t| {
+                (t.source.as_str(), t.demonstrations, t.steps)
+                    == (source.as_str(), reference.episodes, reference.steps)
+            });
+            if current {
                 return Ok(((), Outcome::Reused));
             }
             track_run(&run, &demo_path, |done, of| {
@@ -346,31 +385,35 @@ fn train_and_evaluate(
     protocol: &ReachConfig,
 ) -> Result<()> {
     let steps = train_config.steps;
-    let (_, trained) = stages.run(&format!("{name}/train"), |progress| {
-        let (seconds, outcome) =
-            train_or_reuse(train_config, data, run, |step, _| progress(step, steps))?;
-        if outcome == Outcome::Ran || !run.dir.join("diagnostics.json").exists() {
+    stages.run(&format!("{name}/train"), |progress| {
+        let outcome = train_or_reuse(train_config, data, run, |step, _| progress(step, steps))?;
+        if read_diagnostics(run).is_none() {
             write_diagnostics(run)?;
         }
-        Ok(((seconds, outcome), outcome))
+        Ok(((), outcome))
     })?;
     stages.run(&format!("{name}/eval"), |progress| {
         let episodes = protocol.episodes as u64;
-        evaluate_or_reuse(run, protocol, trained == Outcome::Ran, |done| {
-            progress(done as u64, episodes)
-        })
+        evaluate_or_reuse(run, protocol, |done| progress(done as u64, episodes))
     })?;
     Ok(())
 }
 
+/// A run's JSON output `file`, if readable and written after the run's checkpoint.
+fn read_current<T: serde::de::DeserializeOwned>(run: &RunPaths, file: &str) -> Option<T> {
+    let path = run.dir.join(file);
+    if !is_current(run, &path) {
+        return None;
+    }
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
 fn read_track(run: &RunPaths) -> Option<TrackReport> {
-    let text = std::fs::read_to_string(run.dir.join("track.json")).ok()?;
-    serde_json::from_str(&text).ok()
+    read_current(run, "track.json")
 }
 
 fn read_diagnostics(run: &RunPaths) -> Option<LatentDiagnostics> {
-    let text = std::fs::read_to_string(run.dir.join("diagnostics.json")).ok()?;
-    serde_json::from_str(&text).ok()
+    read_current(run, "diagnostics.json")
 }
 
 /// One method on one environment.
@@ -457,7 +500,7 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Result<Summary> {
                 control_time_us_p99: latent.control_time_us_p99,
                 linear_r2: diagnostics.as_ref().map(|d| d.linear_r2),
                 knn_r2: diagnostics.as_ref().map(|d| d.knn_r2),
-                train_seconds: times.get(&format!("{env}/{}/train", method.dir_name())),
+                train_seconds: training_seconds(&run),
                 curve: latent,
             });
         }
@@ -542,7 +585,8 @@ fn write_outputs(config: &ExperimentConfig, summary: &Summary) -> Result<()> {
         .ablation_noise
         .iter()
         .filter_map(|eps| {
-            let report = read_eval(&config.ablation_run(*eps).0)?;
+            let report =
+                read_eval(&config.ablation_run(*eps).0).filter(|r| r.protocol == protocol)?;
             let mut curve = report.methods.into_iter().next()?;
             curve.method = format!("ProCL + PD, eps = {eps}");
             Some(curve)
@@ -634,10 +678,12 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
         ));
         for row in &results.rows {
             if let Some(run) = &row.run {
-                let run = run.display();
+                let run = RunPaths::new(run);
                 body.push_str(&format!(
-                    "<p>{}</p><img src=\"{run}/latent_traj.png\" width=\"48%\"> <img src=\"{run}/latent_map.png\" width=\"48%\">\n",
-                    row.method
+                    "<p>{}</p><img src=\"{}\" width=\"48%\"> <img src=\"{}\" width=\"48%\">\n",
+                    row.method,
+                    EvalOutputs::in_run(&run).latent_png.display(),
+                    run.dir.join(LATENT_MAP).display()
                 ));
             }
         }
@@ -669,8 +715,15 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
         }
         body.push_str(&format!(
             "<h2>Tracking on Fetch-3D</h2><p>{} demonstrations ({}) of {} steps; error = distance to the reference ({}).</p>\
-<table><tr><th>method</th><th>mean error</th><th>RMS error</th><th>max error</th></tr>\n{rows}</table><img src=\"fetch/procl/track.png\">\n",
-            track.demonstrations, track.source, track.steps, track.distance_unit
+<table><tr><th>method</th><th>mean error</th><th>RMS error</th><th>max error</th></tr>\n{rows}</table><img src=\"{}\">\n",
+            track.demonstrations,
+            track.source,
+            track.steps,
+            track.distance_unit,
+            Path::new(EnvKind::Fetch.name())
+                .join(Method::Procl.dir_name())
+                .join(TRACK_FIGURE)
+                .display()
         ));
     }
     let mut stage_rows = String::new();
@@ -704,19 +757,31 @@ pub fn update_readme(
     config: &ExperimentConfig,
     summary: &Summary,
 ) -> Result<()> {
-    let text = std::fs::read_to_string(readme).map_err(|e| Error::io(readme, e))?;
-    let (Some(begin), Some(end)) = (text.find(README_BEGIN), text.find(README_END)) else {
-        return Err(Error::dataset(
-            readme,
-            format!("has no {README_BEGIN} ... {README_END} section to rewrite"),
-        ));
-    };
-    if end < begin {
-        return Err(Error::dataset(
-            readme,
-            "its experiment marks are out of order",
-        ));
+    let bad = |message: String| Error::config(readme.display().to_string(), message);
+    if let Some(missing) = summary.envs.iter().find(|e| e.rows.is_empty()) {
+        return Err(bad(format!(
+            "not rewritten: {} has no finished evaluation in {} yet",
+            missing.env,
+            config.out.display()
+        )));
     }
+    let text = std::fs::read_to_string(readme).map_err(|e| Error::io(readme, e))?;
+    let begin = match text
+        .match_indices(README_BEGIN)
+        .map(|(i, _)| i)
+        .collect::<Vec<_>>()[..]
+    {
+        [begin] => begin,
+        [] => {
+            return Err(bad(format!(
+                "has no {README_BEGIN} ... {README_END} section to rewrite"
+            )));
+        }
+        _ => return Err(bad(format!("has {README_BEGIN} more than once"))),
+    };
+    let Some(end) = text[begin..].find(README_END).map(|i| begin + i) else {
+        return Err(bad(format!("has no {README_END} after {README_BEGIN}")));
+    };
     let base = readme.parent().unwrap_or(Path::new("."));
     let figure_dir = base.join(figures);
     std::fs::create_dir_all(&figure_dir).map_err(|e| Error::io(&figure_dir, e))?;
@@ -742,7 +807,10 @@ Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
         }
         let name = format!("{}_reach.png", results.env.name());
         let target = figure_dir.join(&name);
-        std::fs::copy(&source, &target).map_err(|e| Error::io(&target, e))?;
+        let bytes = std::fs::read(&source).map_err(|e| Error::io(&source, e))?;
+        crate::write_atomically(&target, true, |w| {
+            std::io::Write::write_all(w, &bytes).map_err(|e| Error::io(&target, e))
+        })?;
         section.push_str(&format!(
             "![distance to goal, {}]({})\n\n",
             results.env,

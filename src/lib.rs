@@ -21,7 +21,9 @@ pub mod nvae;
 pub mod pipeline;
 pub mod train;
 
-pub use checkpoint::{Adam, CheckpointMeta, load_checkpoint, save_checkpoint};
+pub use checkpoint::{
+    Adam, CheckpointMeta, load_checkpoint, read_checkpoint_meta, save_checkpoint,
+};
 pub use error::{Error, Result};
 pub use fsutil::{check_writable, write_atomically};
 pub use image_io::RgbImage;

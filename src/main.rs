@@ -505,6 +505,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             report_only,
             readme,
         } => {
+            if quick && readme.is_some() {
+                anyhow::bail!("--readme is for the full experiment's results, not --quick's");
+            }
             let config = if quick {
                 ExperimentConfig::quick(&out)
             } else {
@@ -584,7 +587,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 episode_len: 100.min(transitions),
                 ..defaults
             };
-            let (data, _) = procl::pipeline::collect_or_reuse(&collect_config, &data_path)?;
+            let (data, _) = procl::pipeline::collect_or_reuse(&collect_config, &data_path, |_| {})?;
             let protocol = procl::pipeline::reach_protocol(env, episodes, horizon);
             let results = procl::ablate::run_grid(
                 &grid,

@@ -6,7 +6,7 @@ use std::path::Path;
 use crate::data::{CollectConfig, Dataset, collect};
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
-use crate::eval::{ReachConfig, ReachReport, evaluate_run};
+use crate::eval::{EvalOutputs, ReachConfig, ReachReport, evaluate_run};
 use crate::model::{EncoderHead, cpu_device};
 use crate::train::{RunPaths, StepValues, TrainConfig, train};
 
@@ -17,25 +17,53 @@ pub enum Outcome {
     Reused,
 }
 
-/// The dataset at `path`, collected with `config` (and saved) unless it is already there.
-pub fn collect_or_reuse(config: &CollectConfig, path: &Path) -> Result<(Dataset, Outcome)> {
+/// The dataset at `path`, collected with `config` (and saved) unless it is already there; a file
+/// there that `config` would not have produced (another env, seed, size or source) is refused.
+/// `progress` gets finished episodes when collecting.
+pub fn collect_or_reuse(
+    config: &CollectConfig,
+    path: &Path,
+    progress: impl FnMut(usize),
+) -> Result<(Dataset, Outcome)> {
+    let episodes = config.episodes()?;
+    let steps = config.episode_len.min(config.transitions);
     if path.exists() {
         let data = Dataset::load(path)?;
-        if data.meta.env != config.env {
+        let found = (
+            data.meta.env,
+            data.meta.seed,
+            data.episodes(),
+            data.steps(),
+            data.meta.source.as_str(),
+        );
+        let wanted = (config.env, config.seed, episodes, steps, RANDOM_CONTROL);
+        if found != wanted {
             return Err(Error::dataset(
                 path,
                 format!(
-                    "holds {} transitions, this stage collects {}; move it away or pick another --out",
-                    data.meta.env, config.env
+                    "holds {} {} episodes x {} steps of {} (seed {}), this stage needs {} {} x {} of {} (seed {}); move it away or pick another --out",
+                    found.2,
+                    found.4,
+                    found.3,
+                    found.0,
+                    found.1,
+                    wanted.2,
+                    wanted.4,
+                    wanted.3,
+                    wanted.0,
+                    wanted.1
                 ),
             ));
         }
         return Ok((data, Outcome::Reused));
     }
-    let data = collect(config, |_| {})?;
+    let data = collect(config, progress)?;
     data.save(path, false)?;
     Ok((data, Outcome::Ran))
 }
+
+/// The `source` of a random-control dataset.
+const RANDOM_CONTROL: &str = "random-control";
 
 /// Sets the training budget (`steps`, and `batch_size` if given) and keeps the checkpoint and
 /// orientation-search cadences consistent with it: a checkpoint every 500 steps (or at the end
@@ -69,67 +97,93 @@ pub fn shrink_networks(config: &mut TrainConfig) {
     }
 }
 
-/// Whether a run's `metrics.csv` reaches `steps`.
+/// Whether the run's checkpoint holds `steps` training steps (`metrics.csv` can run ahead of
+/// it: its row for a step is written before that step's checkpoint).
 fn is_complete(run: &RunPaths, steps: u64) -> bool {
-    std::fs::read_to_string(run.metrics())
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .last()
-                .and_then(|l| l.split(',').next())
-                .and_then(|s| s.parse::<u64>().ok())
-        })
-        == Some(steps)
+    crate::read_checkpoint_meta(&run.checkpoint()).is_ok_and(|meta| meta.step == steps)
 }
 
 /// Trains `config` into `run`: reuses a finished run of the same configuration, resumes an
 /// interrupted one, and refuses a folder holding a run of another configuration (never
-/// overwriting it). Returns the training seconds when it trained.
+/// overwriting it).
 pub fn train_or_reuse(
     config: &TrainConfig,
     data: &Dataset,
     run: &RunPaths,
     progress: impl FnMut(u64, &StepValues),
-) -> Result<(Option<f64>, Outcome)> {
+) -> Result<Outcome> {
     let has_checkpoint = run.checkpoint().exists();
-    let same_config = run.load_config().ok().as_ref() == Some(config);
-    if has_checkpoint && same_config && is_complete(run, config.steps) {
-        return Ok((None, Outcome::Reused));
+    if has_checkpoint {
+        // An unreadable config.json is reported as it is, not as "another configuration".
+        let saved = run.load_config()?;
+        if &saved != config {
+            return Err(Error::config(
+                "run",
+                format!(
+                    "{} holds a run with another configuration ({}); move it away or pick another --out",
+                    run.dir.display(),
+                    run.config().display()
+                ),
+            ));
+        }
+        if is_complete(run, config.steps) {
+            return Ok(Outcome::Reused);
+        }
     }
-    if has_checkpoint && !same_config {
-        return Err(Error::config(
-            "run",
-            format!(
-                "{} holds a run with another configuration; move it away or pick another --out",
-                run.dir.display()
-            ),
-        ));
-    }
-    let start = std::time::Instant::now();
     train(config, data, run, has_checkpoint, &cpu_device(), progress)?;
-    Ok((Some(start.elapsed().as_secs_f64()), Outcome::Ran))
+    Ok(Outcome::Ran)
 }
 
-/// The run's `eval.json` if it was written for `protocol` and `retrained` is false, otherwise
-/// a fresh evaluation (which rewrites it). `progress` gets finished episodes.
+/// Wall-clock training seconds of a run over every invocation that trained it (`metrics.csv`'s
+/// `seconds` restarts from 0 on each resume), or `None` without metrics.
+pub fn training_seconds(run: &RunPaths) -> Option<f64> {
+    let text = std::fs::read_to_string(run.metrics()).ok()?;
+    let (mut total, mut last) = (0.0, 0.0);
+    for seconds in text
+        .lines()
+        .skip(1)
+        .filter_map(|l| l.rsplit(',').next()?.parse::<f64>().ok())
+    {
+        if seconds < last {
+            total += last;
+        }
+        last = seconds;
+    }
+    Some(total + last)
+}
+
+/// Whether `output` (an evaluation, tracking or diagnostics file of `run`) was written after
+/// the run's checkpoint, so it describes these weights and not earlier ones.
+pub fn is_current(run: &RunPaths, output: &Path) -> bool {
+    let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    match (modified(output), modified(&run.checkpoint())) {
+        (Some(written), Some(weights)) => written >= weights,
+        _ => false,
+    }
+}
+
+/// The run's `eval.json` if it is current and was written for `protocol`, otherwise a fresh
+/// evaluation (which rewrites it). `progress` gets finished episodes.
 pub fn evaluate_or_reuse(
     run: &RunPaths,
     protocol: &ReachConfig,
-    retrained: bool,
     progress: impl FnMut(usize),
 ) -> Result<(ReachReport, Outcome)> {
-    if !retrained && let Some(report) = read_eval(run).filter(|r| &r.protocol == protocol) {
+    if let Some(report) = read_eval(run).filter(|r| &r.protocol == protocol) {
         return Ok((report, Outcome::Reused));
     }
     Ok((evaluate_run(run, protocol, progress)?, Outcome::Ran))
 }
 
-/// The run's `eval.json`, if there is a readable one.
+/// The run's `eval.json`, if there is a readable one written after its checkpoint.
 pub fn read_eval(run: &RunPaths) -> Option<ReachReport> {
-    let text = std::fs::read_to_string(run.dir.join("eval.json")).ok()?;
+    let path = EvalOutputs::in_run(run).json;
+    if !is_current(run, &path) {
+        return None;
+    }
+    let text = std::fs::read_to_string(path).ok()?;
     serde_json::from_str(&text).ok()
 }
-
 /// The goal-reaching protocol of `env` with the evaluation seed 1000 (disjoint from the data
 /// seeds), `episodes` episodes and, if given, a shorter horizon.
 pub fn reach_protocol(env: EnvKind, episodes: usize, horizon: Option<usize>) -> ReachConfig {

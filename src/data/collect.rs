@@ -40,7 +40,7 @@ impl CollectConfig {
     }
 
     /// Number of episodes, after checking that the sizes are usable.
-    fn episodes(&self) -> Result<usize> {
+    pub fn episodes(&self) -> Result<usize> {
         if self.transitions == 0 {
             return Err(Error::config("transitions", "must be at least 1"));
         }

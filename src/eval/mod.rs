@@ -18,7 +18,7 @@ pub use reach::{
     run_episode, summarise,
 };
 pub use run::{
-    Controller, EvalOutputs, RunPolicy, evaluate_oracle, evaluate_run, evaluate_run_with,
-    run_policy, write_diagnostics,
+    Controller, EvalOutputs, LATENT_MAP, RunPolicy, evaluate_oracle, evaluate_run,
+    evaluate_run_with, run_policy, write_diagnostics,
 };
-pub use track::{Reference, TrackReport, TrackSummary, track_episode, track_run};
+pub use track::{Reference, TRACK_FIGURE, TrackReport, TrackSummary, track_episode, track_run};

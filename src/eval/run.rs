@@ -15,6 +15,9 @@ use crate::error::{Error, Result};
 use crate::model::{LatentEncoder, cpu_device};
 use crate::train::{RunPaths, TrainConfig, TrainedModel};
 
+/// The latent map [`write_diagnostics`] draws into a run folder.
+pub const LATENT_MAP: &str = "latent_map.png";
+
 /// Output files of an evaluation.
 pub struct EvalOutputs {
     pub json: PathBuf,
@@ -108,7 +111,7 @@ pub fn run_policy(
 pub fn write_diagnostics(run: &RunPaths) -> Result<super::LatentDiagnostics> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
-    let png = run.dir.join("latent_map.png");
+    let png = run.dir.join(LATENT_MAP);
     let encoder: &dyn LatentEncoder = match &model {
         TrainedModel::Procl(model) => &model.encoder,
         TrainedModel::Nvae(model) => &model.encoder,
@@ -185,7 +188,6 @@ pub fn evaluate_run_with(
         methods: vec![latent, oracle],
     };
     let out = EvalOutputs::for_controller(run, controller);
-    crate::fsutil::write_json(&out.json, &report)?;
     let title = format!("{env}: goal reaching over {} episodes", protocol.episodes);
     save_reach_plot(
         &out.reach_png,
@@ -203,5 +205,7 @@ pub fn evaluate_run_with(
     if let Some(first) = records.first() {
         save_episode_gif(&out.gif, first, 5, 3)?;
     }
+    // Last, so that an evaluation interrupted while plotting is not taken for a finished one.
+    crate::fsutil::write_json(&out.json, &report)?;
     Ok(report)
 }

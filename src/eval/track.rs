@@ -139,6 +139,9 @@ pub struct TrackSummary {
     pub max_error: f64,
 }
 
+/// The figure [`track_run`] draws into a run folder.
+pub const TRACK_FIGURE: &str = "track.png";
+
 /// The `track.json` document.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TrackReport {
@@ -222,10 +225,9 @@ pub fn track_run(
             summarise_tracking("oracle PD (true state)", &oracle_runs, &protocol, &[]),
         ],
     };
-    crate::fsutil::write_json(&run.dir.join("track.json"), &report)?;
     let title = format!("{env}: tracking {} ({})", demo.meta.source, label);
     save_track_plot(
-        &run.dir.join("track.png"),
+        &run.dir.join(TRACK_FIGURE),
         &title,
         &reference_paths,
         &latent_runs,
@@ -233,5 +235,7 @@ pub fn track_run(
         &report.methods,
         &protocol,
     )?;
+    // Last, so that tracking interrupted while plotting is not taken for a finished one.
+    crate::fsutil::write_json(&run.dir.join("track.json"), &report)?;
     Ok(report)
 }

@@ -94,6 +94,19 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     assert_eq!(std::fs::read(&weights).unwrap(), before);
     assert_eq!(again.stage_seconds, summary.stage_seconds);
 
+    // New weights make the run's evaluation stale: only that stage runs again.
+    let pc3 = out.join("point-mass/pc3/model.safetensors");
+    // (Over a second: some file systems keep modification times in whole seconds.)
+    std::thread::sleep(std::time::Duration::from_millis(1100));
+    std::fs::write(&pc3, std::fs::read(&pc3).unwrap()).unwrap();
+    let (_, finished) = run(&config, false);
+    let ran: Vec<&str> = finished
+        .iter()
+        .filter(|(_, o)| *o == Outcome::Ran)
+        .map(|(n, _)| n.as_str())
+        .collect();
+    assert_eq!(ran, ["point-mass/pc3/eval"]);
+
     // --report-only runs nothing.
     let (_, finished) = run(&config, true);
     assert!(finished.is_empty());
@@ -114,12 +127,30 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     assert!(!text.contains("old table") && text.contains("| fetch | ProCL + PD |"));
     assert!(text.contains("](img/point-mass_reach.png)"));
     assert!(dir.path().join("img/fetch_reach.png").exists());
-    std::fs::write(&readme, "no marks\n").unwrap();
-    let err = update_readme(&readme, std::path::Path::new("img"), &config, &summary)
+    for (text, expected) in [
+        ("no marks\n".to_string(), "has no"),
+        (
+            format!("{README_BEGIN}\n{README_BEGIN}\n{README_END}\n"),
+            "more than once",
+        ),
+        (format!("{README_END}\n{README_BEGIN}\n"), "after"),
+    ] {
+        std::fs::write(&readme, &text).unwrap();
+        let err = update_readme(&readme, std::path::Path::new("img"), &config, &summary)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("README.md") && err.contains(expected), "{err}");
+        assert_eq!(std::fs::read_to_string(&readme).unwrap(), text);
+    }
+
+    // A dataset of another size is refused by name, not silently reused.
+    let mut bigger = config.clone();
+    bigger.envs[0].transitions = 300;
+    let err = run_experiment(&bigger, false, &mut |_| {})
         .unwrap_err()
         .to_string();
     assert!(
-        err.contains("README.md") && err.contains(README_BEGIN),
+        err.contains("point-mass/data.npz") && err.contains("episodes"),
         "{err}"
     );
 
