@@ -800,6 +800,43 @@ Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
         summary.total_seconds,
         markdown_table(summary)
     );
+    if !summary.ablation.is_empty() {
+        let cells: Vec<String> = summary
+            .ablation
+            .iter()
+            .map(|a| {
+                format!(
+                    "eps = {}: {:.0}% ({:.2e} m)",
+                    a.latent_noise_std,
+                    100.0 * a.success_rate,
+                    a.final_mean
+                )
+            })
+            .collect();
+        section.push_str(&format!(
+            "Latent-noise ablation (point mass, ProCL + PD, success and final distance): {}.\n\n",
+            cells.join(", ")
+        ));
+    }
+    if let Some(track) = &summary.tracking {
+        let methods: Vec<String> = track
+            .methods
+            .iter()
+            .map(|m| {
+                format!(
+                    "{} {:.4} {}",
+                    m.per_step.method, m.mean_error, track.distance_unit
+                )
+            })
+            .collect();
+        section.push_str(&format!(
+            "Tracking on Fetch-3D ({} demonstrations, {}, {} steps), mean distance to the reference: {}.\n\n",
+            track.demonstrations,
+            track.source,
+            track.steps,
+            methods.join(", ")
+        ));
+    }
     for results in &summary.envs {
         let source = config.out.join(reach_figure(results.env));
         if results.rows.is_empty() || !source.exists() {
