@@ -14,7 +14,7 @@ use crate::eval::{
     TrackReport, save_reach_plot, track_run, write_diagnostics,
 };
 use crate::pipeline::{
-    Outcome, collect_or_reuse, evaluate_or_reuse, is_current, reach_protocol, read_eval,
+    Outcome, collect_or_reuse, evaluate_or_reuse, reach_protocol, read_current, read_eval,
     set_budget, shrink_networks, train_or_reuse, training_seconds,
 };
 use crate::train::{Method, Preset, RunPaths, TrainConfig};
@@ -258,7 +258,7 @@ pub fn run_experiment(
     if !report_only {
         run_stages(config, &mut stages)?;
     }
-    let summary = summarise(config, &stages.times)?;
+    let summary = summarise(config, &stages.times);
     write_outputs(config, &summary)?;
     Ok(summary)
 }
@@ -399,21 +399,12 @@ fn train_and_evaluate(
     Ok(())
 }
 
-/// A run's JSON output `file`, if readable and written after the run's checkpoint.
-fn read_current<T: serde::de::DeserializeOwned>(run: &RunPaths, file: &str) -> Option<T> {
-    let path = run.dir.join(file);
-    if !is_current(run, &path) {
-        return None;
-    }
-    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
-}
-
 fn read_track(run: &RunPaths) -> Option<TrackReport> {
-    read_current(run, "track.json")
+    read_current(run, &run.dir.join("track.json"))
 }
 
 fn read_diagnostics(run: &RunPaths) -> Option<LatentDiagnostics> {
-    read_current(run, "diagnostics.json")
+    read_current(run, &run.dir.join("diagnostics.json"))
 }
 
 /// One method on one environment.
@@ -452,6 +443,9 @@ pub struct AblationRow {
     pub final_mean: f64,
     pub final_std: f64,
     pub linear_r2: Option<f64>,
+    /// Per-step distance to the goal, labelled with `eps`: the ablation figure's curve.
+    #[serde(skip)]
+    pub curve: MethodSummary,
 }
 
 /// Everything `summary.json` holds.
@@ -466,7 +460,7 @@ pub struct Summary {
     pub total_seconds: f64,
 }
 
-fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Result<Summary> {
+fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
     let relative = |run: &RunPaths| {
         run.dir
             .strip_prefix(&config.out)
@@ -533,27 +527,29 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Result<Summary> {
         .filter_map(|eps| {
             let (run, _) = config.ablation_run(*eps);
             let report = read_eval(&run).filter(|r| r.protocol == protocol)?;
-            let latent = report.methods.first()?;
+            let mut curve = report.methods.into_iter().next()?;
+            curve.method = format!("ProCL + PD, eps = {eps}");
             Some(AblationRow {
                 latent_noise_std: *eps,
-                success_rate: latent.success_rate,
-                final_mean: latent.final_mean,
-                final_std: latent.final_std,
+                success_rate: curve.success_rate,
+                final_mean: curve.final_mean,
+                final_std: curve.final_std,
                 linear_r2: read_diagnostics(&run).map(|d| d.linear_r2),
+                curve,
             })
         })
         .collect();
     let tracking = read_track(&config.run(EnvKind::Fetch, Method::Procl));
     let stage_seconds = times.0.clone();
     let total_seconds = stage_seconds.iter().map(|(_, s)| s).sum();
-    Ok(Summary {
+    Summary {
         seed: config.seed,
         envs,
         ablation,
         tracking,
         stage_seconds,
         total_seconds,
-    })
+    }
 }
 
 /// The main figure of `env` (every method's distance curve), relative to the experiment folder.
@@ -581,17 +577,8 @@ fn write_outputs(config: &ExperimentConfig, summary: &Summary) -> Result<()> {
         )?;
     }
     let protocol = config.protocol(EnvKind::PointMass);
-    let ablation_curves: Vec<MethodSummary> = config
-        .ablation_noise
-        .iter()
-        .filter_map(|eps| {
-            let report =
-                read_eval(&config.ablation_run(*eps).0).filter(|r| r.protocol == protocol)?;
-            let mut curve = report.methods.into_iter().next()?;
-            curve.method = format!("ProCL + PD, eps = {eps}");
-            Some(curve)
-        })
-        .collect();
+    let ablation_curves: Vec<MethodSummary> =
+        summary.ablation.iter().map(|a| a.curve.clone()).collect();
     if !ablation_curves.is_empty() {
         save_reach_plot(
             &config.out.join(ABLATION_FIGURE),

@@ -175,15 +175,20 @@ pub fn evaluate_or_reuse(
     Ok((evaluate_run(run, protocol, progress)?, Outcome::Ran))
 }
 
-/// The run's `eval.json`, if there is a readable one written after its checkpoint.
-pub fn read_eval(run: &RunPaths) -> Option<ReachReport> {
-    let path = EvalOutputs::in_run(run).json;
-    if !is_current(run, &path) {
+/// The run's JSON output `path` (in its folder), if readable and written after the run's
+/// checkpoint.
+pub fn read_current<T: serde::de::DeserializeOwned>(run: &RunPaths, path: &Path) -> Option<T> {
+    if !is_current(run, path) {
         return None;
     }
-    let text = std::fs::read_to_string(path).ok()?;
-    serde_json::from_str(&text).ok()
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
 }
+
+/// The run's `eval.json`, if there is a readable one written after its checkpoint.
+pub fn read_eval(run: &RunPaths) -> Option<ReachReport> {
+    read_current(run, &EvalOutputs::in_run(run).json)
+}
+
 /// The goal-reaching protocol of `env` with the evaluation seed 1000 (disjoint from the data
 /// seeds), `episodes` episodes and, if given, a shorter horizon.
 pub fn reach_protocol(env: EnvKind, episodes: usize, horizon: Option<usize>) -> ReachConfig {
