@@ -18,6 +18,7 @@ pub mod experiment;
 pub mod losses;
 pub mod model;
 pub mod nvae;
+pub mod orientation;
 pub mod pipeline;
 pub mod train;
 

@@ -16,8 +16,9 @@ use crate::data::Dataset;
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::losses::{LOSS_NAMES, LossConfig, LossInputs, LossValues, NoiseMode, procl_loss};
-use crate::model::{EncoderHead, ModelConfig, ProclModel, frames_to_tensor};
+use crate::model::{DynamicsInput, EncoderHead, ModelConfig, ProclModel, frames_to_tensor};
 use crate::nvae::{NvaeConfig, NvaeModel, NvaeObjective};
+use crate::orientation::{LatentOrienter, OrientationCriterion, WindowRule};
 
 /// Which objective to train.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -99,11 +100,20 @@ pub struct TrainConfig {
     pub learning_rate: f64,
     /// Save a checkpoint every this many steps (and at the end).
     pub checkpoint_every: u64,
-    /// Every this many steps, compare the Lyapunov risk of every signed permutation of the
-    /// latent over the window and keep the lowest (0: off, the paper's training). See
+    /// Every this many steps, choose the latent's orientation from the window's training
+    /// batches by `orientation_criterion` (0: off, the paper's training). See
     /// [`crate::model::ProclModel::reorient_latent`]; must divide `checkpoint_every`.
     #[serde(default)]
     pub orientation_search_every: u64,
+    /// What the orientation search compares: the Lyapunov risk of the signed permutations
+    /// (`risk`, margin and streak below) or the latent's response to the action
+    /// (`action-response`, tolerance below).
+    #[serde(default)]
+    pub orientation_criterion: OrientationCriterion,
+    /// `action-response`: rotate when the aligning map is further than this from the identity
+    /// (Frobenius norm; a rotation by `a` radians in a plane is at `2 sqrt(2) sin(a/2)`).
+    #[serde(default = "default_orientation_tolerance")]
+    pub orientation_tolerance: f64,
     /// Ramp `lambda_R` linearly from 0 over this many steps (0: the full weight from step 1,
     /// as the paper). The risk is lowest for a collapsed latent, so while CPC has not yet
     /// spread the latent out, the risk can win the race and collapse it.
@@ -136,6 +146,10 @@ fn default_orientation_streak() -> u64 {
     1
 }
 
+fn default_orientation_tolerance() -> f64 {
+    0.05
+}
+
 impl TrainConfig {
     /// The loss settings of step `step` (0-based): `lambda_R` ramped over the warm-up.
     pub fn loss_at(&self, step: u64) -> LossConfig {
@@ -162,6 +176,8 @@ impl TrainConfig {
             risk_warmup_steps: 0,
             orientation_margin: default_orientation_margin(),
             orientation_streak: default_orientation_streak(),
+            orientation_criterion: OrientationCriterion::Risk,
+            orientation_tolerance: default_orientation_tolerance(),
             loss: LossConfig::default(),
             model: ModelConfig::for_action_dim(du),
             nvae: None,
@@ -224,6 +240,12 @@ impl TrainConfig {
                 format!("{} must be in [0, 1)", self.orientation_margin),
             ));
         }
+        if !(self.orientation_tolerance.is_finite() && self.orientation_tolerance >= 0.0) {
+            return Err(Error::config(
+                "orientation_tolerance",
+                format!("{} must be >= 0", self.orientation_tolerance),
+            ));
+        }
         if self.batch_size < 2 && self.method != Method::Nvae {
             return Err(Error::config(
                 "batch_size",
@@ -253,6 +275,18 @@ impl TrainConfig {
                     "{} must divide checkpoint_every = {} (so a resumed run searches the same windows)",
                     self.orientation_search_every, self.checkpoint_every
                 ),
+            ));
+        }
+        if self.orientation_search_every != 0
+            && matches!(
+                self.model.dynamics.input,
+                DynamicsInput::ConstantDiagonal { .. }
+            )
+        {
+            return Err(Error::config(
+                "orientation_search_every",
+                "must be 0 with model.dynamics.input constant-diagonal (its positive input \
+                 gains fix the orientation; a search could only turn the latent against them)",
             ));
         }
         if self.method == Method::Pc3 && self.loss.lambda_r != 0.0 {
@@ -486,136 +520,6 @@ pub fn loss_inputs(
     }
 }
 
-/// The Lyapunov risk of each signed permutation of the latent (2^du du! of them), summed over
-/// a window of steps on the training batches (clean encodings, detached: it only chooses, it
-/// does not train).
-pub struct OrientationSearch {
-    /// Row-major `du x du` signed permutation matrices, identity first.
-    candidates: Vec<Vec<f32>>,
-    sums: Vec<f64>,
-    /// The candidate that was best in the last windows, and for how many in a row.
-    run: (usize, u64),
-}
-
-/// All signed permutation matrices of size `du` (row-major), identity first.
-pub fn signed_permutations(du: usize) -> Vec<Vec<f32>> {
-    fn permutations(items: Vec<usize>) -> Vec<Vec<usize>> {
-        if items.len() <= 1 {
-            return vec![items];
-        }
-        let mut out = vec![];
-        for (i, &first) in items.iter().enumerate() {
-            let mut rest = items.clone();
-            rest.remove(i);
-            for mut tail in permutations(rest) {
-                tail.insert(0, first);
-                out.push(tail);
-            }
-        }
-        out
-    }
-    let mut all = vec![];
-    for perm in permutations((0..du).collect()) {
-        for bits in 0..1usize << du {
-            let mut m = vec![0.0f32; du * du];
-            for (row, &col) in perm.iter().enumerate() {
-                m[row * du + col] = if bits & (1 << row) != 0 { -1.0 } else { 1.0 };
-            }
-            all.push(m);
-        }
-    }
-    all
-}
-
-impl OrientationSearch {
-    pub fn new(du: usize) -> Self {
-        let candidates = signed_permutations(du);
-        let sums = vec![0.0; candidates.len()];
-        Self {
-            candidates,
-            sums,
-            run: (0, 0),
-        }
-    }
-
-    /// Adds this batch's risk under every candidate `p` (latent `h -> p h`).
-    pub fn observe(&mut self, inputs: &LossInputs, loss: &LossConfig, dt: f64) {
-        let du = inputs.h_now.dims()[1];
-        let device = inputs.h_now.device();
-        for (k, candidate) in self.candidates.iter().enumerate() {
-            // Rows are samples: h p^T.
-            let p_t = Tensor::<2>::from_data(TensorData::new(candidate.clone(), [du, du]), &device)
-                .transpose();
-            let h_prev = inputs.h_prev.clone().detach().matmul(p_t.clone());
-            let h_now = inputs.h_now.clone().detach().matmul(p_t.clone());
-            let h_next = inputs.h_next.clone().detach().matmul(p_t);
-            let v_now = (h_now.clone() - h_prev) / dt;
-            let v_next = (h_next.clone() - h_now.clone()) / dt;
-            let target = crate::losses::hindsight_targets(
-                h_now.clone(),
-                v_now.clone(),
-                inputs.u.clone(),
-                &inputs.permutation,
-                loss.kp,
-                loss.kd,
-            );
-            let risk = crate::losses::lyapunov_risk(
-                (h_now, v_now),
-                (h_next, v_next),
-                target,
-                loss.q_h,
-                loss.q_v,
-                loss.lyapunov_dt_s.unwrap_or(dt),
-                loss.normalise_risk,
-            );
-            self.sums[k] += crate::model::to_vec(risk)
-                .first()
-                .copied()
-                .unwrap_or(f32::NAN) as f64;
-        }
-    }
-
-    /// Appends this window's summed risk of every candidate (in [`signed_permutations`]
-    /// order, candidate 0 the current orientation) to `path`, with a header on creation: the
-    /// evidence behind each decision, including the windows that changed nothing.
-    pub fn log_window(&self, path: &Path, step: u64) -> Result<()> {
-        let mut text = String::new();
-        if !path.exists() {
-            let names: Vec<String> = (0..self.sums.len()).map(|k| format!("c{k}")).collect();
-            text.push_str(&format!("step,{}\n", names.join(",")));
-        }
-        let sums: Vec<String> = self.sums.iter().map(|x| format!("{x:.6}")).collect();
-        text.push_str(&format!("{step},{}\n", sums.join(",")));
-        std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .and_then(|mut f| f.write_all(text.as_bytes()))
-            .map_err(|e| Error::io(path, e))
-    }
-
-    /// Ends the window: the best candidate if it has been the best for `streak` consecutive
-    /// windows and beats the current orientation by the fraction `margin` in this one, with the
-    /// window's summed risks of the current orientation and the best.
-    pub fn decide(&mut self, margin: f64, streak: u64) -> Option<(Vec<f32>, f64, f64)> {
-        let best = (0..self.sums.len())
-            .min_by(|&a, &b| self.sums[a].total_cmp(&self.sums[b]))
-            .unwrap_or(0);
-        let (identity, best_sum) = (self.sums[0], self.sums[best]);
-        self.sums.iter_mut().for_each(|s| *s = 0.0);
-        self.run = match self.run {
-            (k, n) if k == best && best != 0 => (best, n + 1),
-            _ => (best, u64::from(best != 0)),
-        };
-        let switch =
-            best != 0 && self.run.1 >= streak.max(1) && best_sum < (1.0 - margin) * identity;
-        if switch {
-            self.run = (0, 0);
-        }
-        switch.then(|| (self.candidates[best].clone(), identity, best_sum))
-    }
-}
-
 /// One training step's logged values, named as metrics.csv's columns; the first is the total
 /// loss.
 #[derive(Debug, Clone, PartialEq)]
@@ -696,7 +600,7 @@ struct ProclObjective<'a> {
     data: &'a Dataset,
     run: &'a RunPaths,
     device: &'a Device,
-    search: Option<OrientationSearch>,
+    search: Option<LatentOrienter>,
 }
 
 impl Objective for ProclObjective<'_> {
@@ -731,21 +635,14 @@ impl Objective for ProclObjective<'_> {
         if !(step + 1).is_multiple_of(every) {
             return Ok(model);
         }
-        search.log_window(&self.run.dir.join("orientation_windows.csv"), step + 1)?;
-        let Some((flip, identity, best)) = search.decide(
-            self.config.orientation_margin,
-            self.config.orientation_streak,
-        ) else {
+        let rule = WindowRule {
+            margin: self.config.orientation_margin,
+            streak: self.config.orientation_streak,
+            tolerance: self.config.orientation_tolerance,
+        };
+        let Some(flip) = search.end_window(&self.run.dir, step + 1, rule)? else {
             return Ok(model);
         };
-        let line = format!("{},{:?},{identity:.6},{best:.6}\n", step + 1, flip);
-        let log = self.run.dir.join("orientation.csv");
-        std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&log)
-            .and_then(|mut f| f.write_all(line.as_bytes()))
-            .map_err(|e| Error::io(&log, e))?;
         Ok(model.reorient_latent(&flip))
     }
 }
@@ -785,7 +682,7 @@ pub fn train(
                 run,
                 device,
                 search: (config.orientation_search_every > 0)
-                    .then(|| OrientationSearch::new(data.action_dim())),
+                    .then(|| LatentOrienter::new(config.orientation_criterion, data.action_dim())),
             };
             run_training(objective, model, config, run, resume, device, &mut progress)
         }
@@ -1009,33 +906,21 @@ mod tests {
     }
 
     #[test]
-    fn orientation_search_needs_the_margin_and_the_streak() {
-        let mut search = OrientationSearch::new(2);
-        let window = |search: &mut OrientationSearch, best: usize, ratio: f64| {
-            search.sums.iter_mut().for_each(|s| *s = 1.0);
-            search.sums[best] = ratio;
-            search.decide(0.0, 3).map(|(p, _, _)| p)
-        };
-        // Candidate 5 wins by 3% twice, candidate 2 interrupts, then 5 wins three in a row.
-        assert_eq!(window(&mut search, 5, 0.97), None);
-        assert_eq!(window(&mut search, 5, 0.97), None);
-        assert_eq!(window(&mut search, 2, 0.97), None);
-        assert_eq!(window(&mut search, 5, 0.97), None);
-        assert_eq!(window(&mut search, 5, 0.97), None);
-        let expected = signed_permutations(2)[5].clone();
-        assert_eq!(window(&mut search, 5, 0.97), Some(expected));
-        // The default rule (margin 10%, streak 1): a 3% win is not enough, a 20% win is.
-        search.sums.iter_mut().for_each(|s| *s = 1.0);
-        search.sums[4] = 0.97;
-        assert!(search.decide(0.1, 1).is_none());
-        search.sums.iter_mut().for_each(|s| *s = 1.0);
-        search.sums[4] = 0.8;
-        assert!(search.decide(0.1, 1).is_some());
-        // A margin of 1 or more is refused by name.
+    fn orientation_rules_are_checked_by_name() {
         let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Fetch);
         config.orientation_margin = 1.0;
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("orientation_margin"), "{err}");
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        config.orientation_tolerance = f64::NAN;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("orientation_tolerance"), "{err}");
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        config.model.dynamics.input = DynamicsInput::ConstantDiagonal { initial_gain: 1.0 };
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("orientation_search_every"), "{err}");
+        config.orientation_search_every = 0;
+        assert!(config.validate().is_ok());
     }
 
     #[test]

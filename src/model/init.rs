@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 
 /// Redraws all float parameters of `module`: weights and their biases uniform in
 /// `+-1/sqrt(fan_in)` (PyTorch's default for Linear and Conv2d); parameters named `log_std`
-/// and `log_sharpness` and the orientation keep their configured initial values.
+/// `log_sharpness` and `log_input_gain` and the orientation keep their configured initial values.
 pub fn reinit_params<M: Module>(module: M, seed: u64) -> M {
     let mut mapper = SeededInit {
         rng: ChaCha8Rng::seed_from_u64(seed),
@@ -37,7 +37,11 @@ impl ModuleMapper for SeededInit {
         let name = self.path.last().map(String::as_str).unwrap_or("");
         let dims = param.val().dims();
         let count: usize = dims.iter().product();
-        if name == "log_std" || name == "log_sharpness" || name == super::LATENT_TRANSFORM {
+        if name == "log_std"
+            || name == "log_sharpness"
+            || name == "log_input_gain"
+            || name == super::LATENT_TRANSFORM
+        {
             return param;
         }
         let values: Vec<f32> = {

@@ -7,7 +7,7 @@ mod dynamics;
 mod encoder;
 mod init;
 
-pub use dynamics::{Dynamics, DynamicsConfig, Transition};
+pub use dynamics::{Dynamics, DynamicsConfig, DynamicsInput, Transition};
 pub use encoder::{Encoder, EncoderConfig, EncoderHead};
 pub use init::reinit_params;
 
