@@ -220,10 +220,10 @@ impl TrainConfig {
             // spec.md 3: dt_R = 1 for Fetch (the env's control dt for the 2D envs).
             config.loss.lyapunov_dt_s = Some(1.0);
             if preset == Preset::Procl {
-                // Fetch's 48 candidates differ by 2-3% per window, under the 10% margin, but
-                // the same one wins window after window (docs/method.md, Fetch-3D).
-                config.orientation_margin = 0.0;
-                config.orientation_streak = 3;
+                // A signed permutation leaves Fetch's latent up to 45 degrees from the gripper
+                // axes; the action response measures and removes the whole rotation
+                // (docs/method.md, Fetch-3D: 64-84% with the risk search, 94-100% with this).
+                config.orientation_criterion = OrientationCriterion::ActionResponse;
             }
         }
         config
@@ -892,17 +892,26 @@ mod tests {
             let reacher = TrainConfig::preset(preset, Method::Procl, EnvKind::Reacher);
             assert_eq!(reacher.loss.lyapunov_dt_s, None);
         }
-        // The streak rule is Fetch's; the 2D envs keep the rule their results were measured with.
-        let fetch = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Fetch);
-        assert_eq!(
-            (fetch.orientation_margin, fetch.orientation_streak),
-            (0.0, 3)
-        );
+        // Fetch (both latent methods) orients by the action response; the 2D envs keep the
+        // risk search their results were measured with, and the paper preset searches nothing.
+        for method in [Method::Procl, Method::Pc3] {
+            let fetch = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
+            assert_eq!(
+                fetch.orientation_criterion,
+                OrientationCriterion::ActionResponse
+            );
+            assert_eq!(fetch.orientation_search_every, 50);
+        }
         let point_mass = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
         assert_eq!(
-            (point_mass.orientation_margin, point_mass.orientation_streak),
-            (0.1, 1)
+            (
+                point_mass.orientation_criterion,
+                point_mass.orientation_margin
+            ),
+            (OrientationCriterion::Risk, 0.1)
         );
+        let paper = TrainConfig::preset(Preset::Paper, Method::Procl, EnvKind::Fetch);
+        assert_eq!(paper.orientation_search_every, 0);
     }
 
     #[test]

@@ -186,6 +186,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         ("point-mass.toml", EnvKind::PointMass),
         ("sharpness.toml", EnvKind::PointMass),
         ("reacher.toml", EnvKind::Reacher),
+        ("fetch.toml", EnvKind::Fetch),
     ] {
         let grid = procl::ablate::Grid::from_toml(&root.join(file)).unwrap();
         let configs = grid
@@ -212,4 +213,19 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
     preset.steps = cell.steps;
     assert_eq!(&preset, cell);
+    // Fetch: the `action-response` cells are the presets of both latent methods, and the
+    // `risk-search` cells the stop-13 rule they replaced.
+    let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
+    let configs = grid.cell_configs(EnvKind::Fetch).unwrap();
+    for (name, method) in [
+        ("action-response", Method::Procl),
+        ("pc3_action-response", Method::Pc3),
+    ] {
+        let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
+        let mut preset = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
+        preset.steps = cell.steps;
+        assert_eq!(&preset, cell, "{name}");
+    }
+    let (_, risk) = configs.iter().find(|(n, _)| n == "risk-search").unwrap();
+    assert_eq!((risk.orientation_margin, risk.orientation_streak), (0.0, 3));
 }
