@@ -54,6 +54,13 @@ pub struct LossConfig {
     /// where no PD-consistent latent is close (the reacher), it shrinks `h` instead of reshaping it.
     #[serde(default)]
     pub variance_floor: Option<f64>,
+    /// Compute the Lyapunov risk on the batch-standardised latent `c h / std(h)` (per
+    /// dimension, batch std of `h_t`, gradient through the std) with `c` this value (`None`: on
+    /// `h` as it is, the paper). The risk then cannot be lowered by shrinking the latent, and
+    /// its scale against the hindsight offset `u / Kp` is fixed at `c`. Experimental: the
+    /// controller still runs on `h` (docs/method.md, Reacher-2D stop 14).
+    #[serde(default)]
+    pub risk_latent_std: Option<f64>,
     #[serde(default = "default_variance_weight")]
     pub variance_weight: f64,
 }
@@ -64,13 +71,20 @@ fn default_variance_weight() -> f64 {
 
 /// `mean_j max(0, floor - std_j(h))` over the columns of `h [n, du]`.
 pub fn variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
+    relu(batch_std(h).neg().add_scalar(floor))
+        .mean()
+        .reshape([1])
+}
+
+/// Per-dimension population std over the batch, `[n, du] -> [1, du]` (a tiny floor under the
+/// variance keeps the gradient of a collapsed dimension finite).
+pub(crate) fn batch_std(h: Tensor<2>) -> Tensor<2> {
     let mean = h.clone().mean_dim(0);
-    let std = (h - mean)
+    (h - mean)
         .powi_scalar(2)
         .mean_dim(0)
         .add_scalar(1e-12)
-        .sqrt(); // [1, du]
-    relu(std.neg().add_scalar(floor)).mean().reshape([1])
+        .sqrt()
 }
 
 impl Default for LossConfig {
@@ -93,6 +107,7 @@ impl Default for LossConfig {
             normalise_risk: false,
             variance_floor: None,
             variance_weight: default_variance_weight(),
+            risk_latent_std: None,
         }
     }
 }
@@ -114,6 +129,14 @@ impl LossConfig {
             ("loss.variance_weight", self.variance_weight),
             ("loss.variance_floor", self.variance_floor.unwrap_or(0.0)),
         ];
+        if let Some(c) = self.risk_latent_std
+            && !(c.is_finite() && c > 0.0)
+        {
+            return Err(Error::config(
+                "loss.risk_latent_std",
+                format!("{c} must be finite and > 0"),
+            ));
+        }
         for (field, value) in non_negative {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(Error::config(
@@ -376,7 +399,23 @@ pub fn procl_loss(
         dt,
     );
 
-    // Lyapunov risk with hindsight targets.
+    // Lyapunov risk with hindsight targets, on the standardised latent if asked (one scale
+    // for every latent of the sample, so velocities stay finite differences of positions).
+    let z_after = match config.noise_mode {
+        NoiseMode::Paper => (h_next_noisy, v_next_noisy),
+        NoiseMode::CleanRisk => (h_next.clone(), (h_next - h_now.clone()) / dt),
+    };
+    let (h_now, v_now, z_after) = match config.risk_latent_std {
+        Some(c) => {
+            let scale = batch_std(h_now.clone()).recip() * c; // [1, du]
+            (
+                h_now * scale.clone(),
+                v_now * scale.clone(),
+                (z_after.0 * scale.clone(), z_after.1 * scale),
+            )
+        }
+        None => (h_now, v_now, z_after),
+    };
     let (h_target, v_target) = hindsight_targets(
         h_now.clone(),
         v_now.clone(),
@@ -389,10 +428,6 @@ pub fn procl_loss(
         (h_target.detach(), v_target.detach())
     } else {
         (h_target, v_target)
-    };
-    let z_after = match config.noise_mode {
-        NoiseMode::Paper => (h_next_noisy, v_next_noisy),
-        NoiseMode::CleanRisk => (h_next.clone(), (h_next - h_now.clone()) / dt),
     };
     let dt_r = config.lyapunov_dt_s.unwrap_or(dt);
     let lyap = lyapunov_risk(

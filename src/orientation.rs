@@ -317,6 +317,18 @@ impl OrientationSearch {
             let h_prev = inputs.h_prev.clone().detach().matmul(p_t.clone());
             let h_now = inputs.h_now.clone().detach().matmul(p_t.clone());
             let h_next = inputs.h_next.clone().detach().matmul(p_t);
+            // The risk the trainer optimises: standardised if `loss.risk_latent_std` says so.
+            let (h_prev, h_now, h_next) = match loss.risk_latent_std {
+                Some(c) => {
+                    let scale = crate::losses::batch_std(h_now.clone()).recip() * c;
+                    (
+                        h_prev * scale.clone(),
+                        h_now * scale.clone(),
+                        h_next * scale,
+                    )
+                }
+                None => (h_prev, h_now, h_next),
+            };
             let v_now = (h_now.clone() - h_prev) / dt;
             let v_next = (h_next.clone() - h_now.clone()) / dt;
             let target = crate::losses::hindsight_targets(

@@ -111,6 +111,40 @@ fn lyapunov_risk_separates_aligned_from_mirrored_latents() {
 }
 
 #[test]
+fn standardised_risk_cannot_be_lowered_by_shrinking_the_latent() {
+    let data = point_mass_data();
+    let plain = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass).loss;
+    let standardised = LossConfig {
+        risk_latent_std: Some(0.1),
+        ..plain.clone()
+    };
+    let risk = |loss: &LossConfig, s: f32, sign: f32| {
+        risk_of_map(&data, [[sign * s, 0.0], [0.0, s]], loss, 2)
+    };
+    // As the paper has it, a 100x smaller latent has a far smaller risk ...
+    let (large, small) = (risk(&plain, 1.0, 1.0), risk(&plain, 0.01, 1.0));
+    assert!(small < 0.1 * large, "plain risk {large} -> {small}");
+    // ... standardised, it has the same one, and it still tells a mirrored latent apart.
+    let (large, small) = (
+        risk(&standardised, 1.0, 1.0),
+        risk(&standardised, 0.01, 1.0),
+    );
+    assert!(
+        (large - small).abs() <= 1e-3 * large.max(1e-9),
+        "standardised risk {large} vs {small}"
+    );
+    let flipped = risk(&standardised, 0.01, -1.0);
+    assert!(small < 0.5 * flipped, "aligned {small}, flipped {flipped}");
+    // A non-positive scale is refused by name.
+    let bad = LossConfig {
+        risk_latent_std: Some(0.0),
+        ..plain
+    };
+    let err = bad.validate().unwrap_err().to_string();
+    assert!(err.contains("loss.risk_latent_std"), "{err}");
+}
+
+#[test]
 fn ablation_grid_runs_resumes_and_writes_outputs() {
     let dir = tempfile::tempdir().unwrap();
     let grid_path = dir.path().join("grid.toml");
