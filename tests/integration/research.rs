@@ -247,6 +247,19 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
     preset.steps = cell.steps;
     assert_eq!(&preset, cell);
+    // Each stop-14 cell is that preset at 1200 steps plus its one change.
+    let stop14 = |name: &str| {
+        let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
+        let mut expected = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        expected.steps = 1200;
+        (expected, cell.clone())
+    };
+    let (mut expected, cell) = stop14("stop14_action-response");
+    expected.orientation_criterion = procl::orientation::OrientationCriterion::ActionResponse;
+    assert_eq!(expected, cell);
+    let (mut expected, cell) = stop14("stop14_risk_latent_std=0.1");
+    expected.loss.risk_latent_std = Some(0.1);
+    assert_eq!(expected, cell);
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
     let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
