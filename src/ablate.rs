@@ -161,12 +161,7 @@ pub fn run_grid(
             };
             let line = serde_json::to_string(&result)
                 .map_err(|e| Error::config("ablation", e.to_string()))?;
-            let mut file = std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&jsonl)
-                .map_err(|e| Error::io(&jsonl, e))?;
-            writeln!(file, "{line}").map_err(|e| Error::io(&jsonl, e))?;
+            crate::fsutil::append_line(&jsonl, "", &line)?;
             log(&result);
             done.push(result);
         }

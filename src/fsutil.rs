@@ -1,4 +1,5 @@
-//! Safe file output: refuse to clobber, write to a temporary sibling, then rename into place.
+//! Safe file output: refuse to clobber, write to a temporary sibling, then rename into place;
+//! and appending lines to logs.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -62,4 +63,22 @@ pub fn write_json<T: serde::Serialize + ?Sized>(path: &Path, value: &T) -> Resul
     write_atomically(path, true, |w| {
         w.write_all(json.as_bytes()).map_err(|e| Error::io(path, e))
     })
+}
+
+/// Appends `line` and a newline to the log `path` (created if missing), writing `header` first
+/// when the file is new and `header` is not empty.
+pub fn append_line(path: &Path, header: &str, line: &str) -> Result<()> {
+    let mut text = String::new();
+    if !path.exists() && !header.is_empty() {
+        text.push_str(header);
+        text.push('\n');
+    }
+    text.push_str(line);
+    text.push('\n');
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .and_then(|mut f| f.write_all(text.as_bytes()))
+        .map_err(|e| Error::io(path, e))
 }

@@ -76,9 +76,15 @@ pub fn variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
         .reshape([1])
 }
 
+/// The factor `c / std(h_t)` (`[1, du]`, gradient through the std) that the Lyapunov risk
+/// multiplies every latent of a sample by under `loss.risk_latent_std = c`; `None` when off.
+pub(crate) fn risk_scale(config: &LossConfig, h_now: Tensor<2>) -> Option<Tensor<2>> {
+    config.risk_latent_std.map(|c| batch_std(h_now).recip() * c)
+}
+
 /// Per-dimension population std over the batch, `[n, du] -> [1, du]` (a tiny floor under the
 /// variance keeps the gradient of a collapsed dimension finite).
-pub(crate) fn batch_std(h: Tensor<2>) -> Tensor<2> {
+fn batch_std(h: Tensor<2>) -> Tensor<2> {
     let mean = h.clone().mean_dim(0);
     (h - mean)
         .powi_scalar(2)
@@ -405,15 +411,12 @@ pub fn procl_loss(
         NoiseMode::Paper => (h_next_noisy, v_next_noisy),
         NoiseMode::CleanRisk => (h_next.clone(), (h_next - h_now.clone()) / dt),
     };
-    let (h_now, v_now, z_after) = match config.risk_latent_std {
-        Some(c) => {
-            let scale = batch_std(h_now.clone()).recip() * c; // [1, du]
-            (
-                h_now * scale.clone(),
-                v_now * scale.clone(),
-                (z_after.0 * scale.clone(), z_after.1 * scale),
-            )
-        }
+    let (h_now, v_now, z_after) = match risk_scale(config, h_now.clone()) {
+        Some(scale) => (
+            h_now * scale.clone(),
+            v_now * scale.clone(),
+            (z_after.0 * scale.clone(), z_after.1 * scale),
+        ),
         None => (h_now, v_now, z_after),
     };
     let (h_target, v_target) = hindsight_targets(

@@ -2,13 +2,13 @@
 //! with diagonal gains acts on, chosen by the windowed Lyapunov risk of the signed permutations
 //! or by the latent's measured response to the action (issue 9, docs/method.md).
 
-use std::io::Write;
 use std::path::Path;
 
 use burn::tensor::{Tensor, TensorData};
 use nalgebra::DMatrix;
 
-use crate::error::{Error, Result};
+use crate::error::Result;
+use crate::fsutil::append_line;
 use crate::losses::{LossConfig, LossInputs};
 
 /// How the training loop chooses the orientation of the latent (every
@@ -24,23 +24,6 @@ pub enum OrientationCriterion {
     /// positive on its diagonal ([`ActionResponse`]). It does not depend on the latent's scale,
     /// which the risk does.
     ActionResponse,
-}
-
-/// Appends `line` to the log `path`, writing `header` first when the file is new.
-fn append_line(path: &Path, header: &str, line: &str) -> Result<()> {
-    let mut text = String::new();
-    if !path.exists() && !header.is_empty() {
-        text.push_str(header);
-        text.push('\n');
-    }
-    text.push_str(line);
-    text.push('\n');
-    std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)
-        .and_then(|mut f| f.write_all(text.as_bytes()))
-        .map_err(|e| Error::io(path, e))
 }
 
 /// The orientation chooser of one training run, by criterion.
@@ -318,15 +301,12 @@ impl OrientationSearch {
             let h_now = inputs.h_now.clone().detach().matmul(p_t.clone());
             let h_next = inputs.h_next.clone().detach().matmul(p_t);
             // The risk the trainer optimises: standardised if `loss.risk_latent_std` says so.
-            let (h_prev, h_now, h_next) = match loss.risk_latent_std {
-                Some(c) => {
-                    let scale = crate::losses::batch_std(h_now.clone()).recip() * c;
-                    (
-                        h_prev * scale.clone(),
-                        h_now * scale.clone(),
-                        h_next * scale,
-                    )
-                }
+            let (h_prev, h_now, h_next) = match crate::losses::risk_scale(loss, h_now.clone()) {
+                Some(scale) => (
+                    h_prev * scale.clone(),
+                    h_now * scale.clone(),
+                    h_next * scale,
+                ),
                 None => (h_prev, h_now, h_next),
             };
             let v_now = (h_now.clone() - h_prev) / dt;
