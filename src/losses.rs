@@ -63,6 +63,13 @@ pub struct LossConfig {
     pub risk_latent_std: Option<f64>,
     #[serde(default = "default_variance_weight")]
     pub variance_weight: f64,
+    /// Decorrelation (VICReg's covariance term, on correlations so it is scale-free): adds
+    /// `decorrelation_weight * mean_{i != j} corr(h_i, h_j)^2` over the batch's `h_t` (0: off,
+    /// the paper). The variance floor holds each dimension's spread but not its content; on the
+    /// reacher both dimensions came to follow the shoulder and squeezed the wrist into a thin
+    /// band. Independent random joints in the data make uncorrelated latent axes joint-like.
+    #[serde(default)]
+    pub decorrelation_weight: f64,
 }
 
 fn default_variance_weight() -> f64 {
@@ -74,6 +81,24 @@ pub fn variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
     relu(batch_std(h).neg().add_scalar(floor))
         .mean()
         .reshape([1])
+}
+
+/// `mean_{i != j} corr(h_i, h_j)^2` over the columns of `h [n, du]` (0 for du = 1).
+pub fn correlation_penalty(h: Tensor<2>) -> Tensor<1> {
+    let [n, du] = h.dims();
+    let h_device = h.device();
+    if du < 2 {
+        return Tensor::zeros([1], &h_device);
+    }
+    let mean = h.clone().mean_dim(0);
+    let std = batch_std(h.clone());
+    let standardised = (h - mean) / std; // [n, du]
+    let correlation = standardised.clone().transpose().matmul(standardised) / n as f64; // [du, du]
+    let off_diagonal: Vec<f32> = (0..du * du)
+        .map(|k| if k / du == k % du { 0.0 } else { 1.0 })
+        .collect();
+    let mask = Tensor::<2>::from_data(TensorData::new(off_diagonal, [du, du]), &h_device);
+    (correlation.powi_scalar(2) * mask).sum() / (du * (du - 1)) as f64
 }
 
 /// The factor `c / std(h_t)` (`[1, du]`, gradient through the std) that the Lyapunov risk
@@ -114,6 +139,7 @@ impl Default for LossConfig {
             variance_floor: None,
             variance_weight: default_variance_weight(),
             risk_latent_std: None,
+            decorrelation_weight: 0.0,
         }
     }
 }
@@ -134,6 +160,7 @@ impl LossConfig {
             ("loss.q_v", self.q_v),
             ("loss.variance_weight", self.variance_weight),
             ("loss.variance_floor", self.variance_floor.unwrap_or(0.0)),
+            ("loss.decorrelation_weight", self.decorrelation_weight),
         ];
         if let Some(c) = self.risk_latent_std
             && !(c.is_finite() && c > 0.0)
@@ -448,7 +475,10 @@ pub fn procl_loss(
         + curv.clone() * config.lambda_curv;
     let mut total = pc3 * config.lambda_pc3 + lyap.clone() * config.lambda_r;
     if let Some(floor) = config.variance_floor {
-        total = total + variance_hinge(h_now_for_variance, floor) * config.variance_weight;
+        total = total + variance_hinge(h_now_for_variance.clone(), floor) * config.variance_weight;
+    }
+    if config.decorrelation_weight > 0.0 {
+        total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
     }
     LossTerms {
         cpc,
@@ -641,6 +671,20 @@ mod tests {
         assert!((scalar(variance_hinge(h.clone(), 1.0)) - 0.375).abs() < 1e-5);
         // floor 0.2: both columns above.
         assert!(scalar(variance_hinge(h, 0.2)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn correlation_penalty_is_the_squared_off_diagonal_correlation() {
+        let device = cpu_device();
+        // Columns (1, 2, 3) and (1, 3, 2): deviations (-1, 0, 1), (-1, 1, 0), covariance 1/3,
+        // variances 2/3 each, so corr = 0.5 and the penalty 0.25.
+        let h = t2(&[1.0, 1.0, 2.0, 3.0, 3.0, 2.0], 3, 2, &device);
+        assert!((scalar(correlation_penalty(h.clone())) - 0.25).abs() < 1e-5);
+        // Scale-free: the same for a 100x smaller latent.
+        assert!((scalar(correlation_penalty(h * 0.01)) - 0.25).abs() < 1e-4);
+        // Uncorrelated columns (1, -1, 1, -1) and (1, 1, -1, -1): 0.
+        let h = t2(&[1.0, 1.0, -1.0, 1.0, 1.0, -1.0, -1.0, -1.0], 4, 2, &device);
+        assert!(scalar(correlation_penalty(h)).abs() < 1e-6);
     }
 
     /// The dynamics' parameters read out to f64 by path (`fc1.weight` is `[in, out]`).

@@ -88,6 +88,7 @@ pub fn shrink_networks(config: &mut TrainConfig) {
     config.model.encoder.head = EncoderHead::SoftArgmax {
         keypoints: 4,
         hidden: 0,
+        polar: false,
     };
     if let Some(nvae) = config.nvae.as_mut() {
         nvae.trunk_channels = [8, 8];

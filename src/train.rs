@@ -211,6 +211,7 @@ impl TrainConfig {
             config.model.encoder.head = EncoderHead::SoftArgmax {
                 keypoints: 16,
                 hidden: 32,
+                polar: false,
             };
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.variance_floor = Some(1.0);
@@ -608,10 +609,11 @@ impl Objective for ProclObjective<'_> {
     const METRICS: &'static [&'static str] = &LOSS_NAMES;
 
     fn prepare(&mut self, mut model: ProclModel) -> ProclModel {
+        let frames = scale_frames(self.data, self.config.seed, self.device);
+        model.encoder = model.encoder.place_polar_cut(frames.clone());
         if let Some(target_std) = self.config.model.encoder.init_latent_std
             && target_std > 0.0
         {
-            let frames = scale_frames(self.data, self.config.seed, self.device);
             model.encoder = model.encoder.normalise_latent_scale(frames, target_std);
         }
         model

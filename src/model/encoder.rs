@@ -19,10 +19,19 @@ pub enum EncoderHead {
     /// (`hidden = 0`) or a one-hidden-layer tanh MLP (`hidden > 0`). With the linear map `h` is
     /// linear in the image positions the keypoints track, right for a point mass; joint angles
     /// (reacher) are not linear in any image position, so an arm needs the hidden layer.
+    ///
+    /// With `polar = true` each keypoint is the expected angle and distance about the image
+    /// centre of the cells it attends to, instead of their expected `(x, y)`: the coordinates
+    /// of a revolute joint anchored there. An
+    /// angle must be cut somewhere on the circle; the cut is placed, once, in the direction the
+    /// training frames change least (for an arm with joint limits, the sector its links never
+    /// sweep), see [`Encoder::place_polar_cut`].
     SoftArgmax {
         keypoints: usize,
         #[serde(default)]
         hidden: usize,
+        #[serde(default)]
+        polar: bool,
     },
 }
 
@@ -64,6 +73,7 @@ impl EncoderConfig {
             head: EncoderHead::SoftArgmax {
                 keypoints: 16,
                 hidden: 0,
+                polar: false,
             },
             keypoint_sharpness: 1.0,
             init_latent_std: None,
@@ -111,7 +121,11 @@ impl EncoderConfig {
                 }),
                 None,
             ),
-            EncoderHead::SoftArgmax { keypoints, hidden } => {
+            EncoderHead::SoftArgmax {
+                keypoints,
+                hidden,
+                polar,
+            } => {
                 let (hidden_layer, out_inputs) = if hidden == 0 {
                     (None, 2 * keypoints)
                 } else {
@@ -131,6 +145,14 @@ impl EncoderConfig {
                         features: conv(c2, keypoints, 1, 1, 0),
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
+                        // Cut opposite +x until [`Encoder::place_polar_cut`] sees the data.
+                        polar_axis: polar.then(|| {
+                            Param::from_tensor(Tensor::from_data(
+                                TensorData::new(vec![1f32, 0.0], [2]),
+                                device,
+                            ))
+                            .set_require_grad(false)
+                        }),
                     }),
                 )
             }
@@ -162,7 +184,17 @@ pub struct KeypointHead {
     /// Optional tanh layer between the keypoint coordinates and `out`.
     hidden: Option<Linear>,
     out: Linear,
+    /// Polar coordinates only: the unit direction `(cos m, sin m)` at which angles are 0; they
+    /// are cut at `m + pi`. Not trained (excluded from init and the optimiser).
+    polar_axis: Option<Param<Tensor<1>>>,
 }
+
+/// Name of the polar head's non-trained axis parameter.
+pub(crate) const POLAR_AXIS: &str = "polar_axis";
+
+/// Distance from the centre (image half-widths) within which a cell's angle fades to 0: the
+/// angle of a point at the pivot is undefined.
+const POLAR_FADE_RADIUS: f32 = 0.05;
 
 /// The encoder `e`. Exactly one of the heads is present.
 #[derive(Module, Debug)]
@@ -223,6 +255,33 @@ impl Encoder {
         self
     }
 
+    /// Places the polar head's angle cut in the direction where `frames` change least, so no
+    /// reachable configuration sits on it (no-op for the other heads). Data-dependent
+    /// initialisation, run once before training; the axis is stored with the weights.
+    pub fn place_polar_cut(mut self, frames: Tensor<4>) -> Self {
+        let Some(head) = self.keypoints.as_mut() else {
+            return self;
+        };
+        let Some(axis) = head.polar_axis.as_mut() else {
+            return self;
+        };
+        let [cut_x, cut_y] = quietest_direction(frames.detach());
+        let device = axis.val().device();
+        *axis = Param::from_tensor(Tensor::from_data(
+            TensorData::new(vec![-cut_x, -cut_y], [2]),
+            &device,
+        ))
+        .set_require_grad(false);
+        self
+    }
+
+    /// The polar head's axis `(cos m, sin m)`: angles are measured from it and cut opposite.
+    pub fn polar_axis(&self) -> Option<[f32; 2]> {
+        let axis = self.keypoints.as_ref()?.polar_axis.as_ref()?;
+        let v = crate::model::to_vec(axis.val());
+        Some([v[0], v[1]])
+    }
+
     /// The head's output before the orientation `Q`.
     fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
@@ -241,15 +300,79 @@ impl Encoder {
         let [n, k, rows, cols] = maps.dims();
         let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
         let attention = softmax(maps.reshape([n, k, rows * cols]) * sharpness, 2); // [n, K, 256]
+        // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
+        // angle and radius of the cells about the image centre.
         let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
-        let expected_x = (attention.clone() * grid_x).sum_dim(2); // [n, K, 1]
-        let expected_y = (attention * grid_y).sum_dim(2); // [n, K, 1]
-        let keypoints = Tensor::cat(vec![expected_x, expected_y], 1).reshape([n, 2 * k]); // [n, 2K]
+        let (grid_a, grid_b) = match &head.polar_axis {
+            Some(axis) => polar_grid(grid_x, grid_y, axis.val()),
+            None => (grid_x, grid_y),
+        };
+        let coordinates = vec![
+            (attention.clone() * grid_a).sum_dim(2), // [n, K, 1]
+            (attention * grid_b).sum_dim(2),         // [n, K, 1]
+        ];
+        let keypoints = Tensor::cat(coordinates, 1).reshape([n, 2 * k]); // [n, 2K]
         match &head.hidden {
             Some(hidden) => head.out.forward(tanh(hidden.forward(keypoints))), // [n, du]
             None => head.out.forward(keypoints),                               // [n, du]
         }
     }
+}
+
+/// Cell coordinates `(x, y)` (`[1, 1, cells]` each, about the image centre) -> each cell's
+/// angle from `axis` (in `(-pi, pi]`, faded to 0 within [`POLAR_FADE_RADIUS`] of the centre,
+/// where the angle is undefined) and its distance from the centre. The expected angle under a
+/// keypoint's attention then grows with the angle of what it attends to, with no jump unless
+/// that crosses the cut opposite `axis`.
+fn polar_grid(x: Tensor<3>, y: Tensor<3>, axis: Tensor<1>) -> (Tensor<3>, Tensor<3>) {
+    let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
+    let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
+    // Rotate by -m so the axis lies along +x and the cut along -x, where atan2 jumps.
+    let along = x.clone() * cos_m.clone() + y.clone() * sin_m.clone();
+    let across = y * cos_m - x * sin_m;
+    let r_squared = along.clone().powi_scalar(2) + across.clone().powi_scalar(2);
+    let fade = r_squared.clone() / (r_squared.clone() + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
+    (across.atan2(along) * fade, r_squared.sqrt())
+}
+
+/// The direction (unit vector in image coordinates about the centre) in which `frames`
+/// `[n, 3, rows, cols]` change least: each pixel's standard deviation over the frames, divided
+/// by its distance from the centre and binned by its angle about the centre in 5-degree bins,
+/// smoothed over +-15 degrees; the cut is the emptiest bin. For an arm with joint limits that
+/// is the sector its links never sweep.
+fn quietest_direction(frames: Tensor<4>) -> [f32; 2] {
+    const BINS: usize = 72;
+    const SMOOTH: isize = 3;
+    let [_, _, rows, cols] = frames.dims();
+    let mean = frames.clone().mean_dim(0); // [1, c, rows, cols]
+    let std = (frames - mean)
+        .powi_scalar(2)
+        .mean_dim(0)
+        .sqrt()
+        .sum_dim(1)
+        .reshape([rows * cols]);
+    let std = crate::model::to_vec(std);
+    let mut histogram = [0f64; BINS];
+    let coord = |i: usize, n: usize| (2.0 * i as f64 + 1.0) / n as f64 - 1.0;
+    for (p, &w) in std.iter().enumerate() {
+        let (x, y) = (coord(p % cols, cols), coord(p / cols, rows));
+        let turn = y.atan2(x).rem_euclid(std::f64::consts::TAU) / std::f64::consts::TAU;
+        // 1 / r: every distance from the centre counts equally per angle (there are r times
+        // more pixels per degree at radius r), so an arm's inner link, whose sweep is bounded
+        // by the joint limit, weighs as much as the outer one, whose sweep overhangs it.
+        let r = x.hypot(y).max(POLAR_FADE_RADIUS as f64);
+        histogram[((turn * BINS as f64) as usize).min(BINS - 1)] += w as f64 / r;
+    }
+    let smoothed = |b: usize| -> f64 {
+        (-SMOOTH..=SMOOTH)
+            .map(|d| histogram[(b as isize + d).rem_euclid(BINS as isize) as usize])
+            .sum()
+    };
+    let quietest = (0..BINS)
+        .min_by(|&a, &b| smoothed(a).total_cmp(&smoothed(b)))
+        .unwrap_or(0);
+    let angle = (quietest as f64 + 0.5) / BINS as f64 * std::f64::consts::TAU;
+    [angle.cos() as f32, angle.sin() as f32]
 }
 
 /// Column and row coordinates of each cell, in [-1, 1], shaped `[1, 1, rows * cols]`.
@@ -287,10 +410,12 @@ mod tests {
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 0,
+                polar: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 8,
+                polar: true,
             },
             EncoderHead::Mlp { hidden: 8 },
         ] {
@@ -311,6 +436,86 @@ mod tests {
                 assert!((std - 2.5).abs() < 1e-3, "{head:?} dim {dim}: std {std}");
             }
         }
+    }
+
+    /// The polar head's cut must fall in the sector the reacher's shoulder cannot reach (q0
+    /// beyond +-160 degrees, to the image's left), so the angle of the upper arm about the
+    /// centre is continuous and monotone over the whole joint range.
+    #[test]
+    fn polar_cut_falls_in_the_reachers_unreachable_sector() {
+        let device = cpu_device();
+        let config = EncoderConfig {
+            trunk_channels: [4, 4],
+            head: EncoderHead::SoftArgmax {
+                keypoints: 4,
+                hidden: 0,
+                polar: true,
+            },
+            ..EncoderConfig::new(2)
+        };
+        let encoder = config.init(&device);
+        assert_eq!(encoder.polar_axis(), Some([1.0, 0.0]));
+        let mut env = EnvKind::Reacher.make();
+        let mut rendered = vec![];
+        for seed in 0..96 {
+            env.reset(seed).unwrap();
+            let mut frame = [0u8; FRAME_BYTES];
+            env.render(&mut frame);
+            rendered.push(frame);
+        }
+        let frames = frames_to_tensor(rendered.iter().map(|f| &f[..]), &device);
+        let [ax, ay] = encoder.place_polar_cut(frames).polar_axis().unwrap();
+        // The unreachable sector is centred on world -x, image column < centre, row = centre.
+        let off_axis_deg = ay.atan2(ax).to_degrees();
+        assert!(
+            off_axis_deg.abs() < 20.0,
+            "axis {off_axis_deg} deg from image +x"
+        );
+        // The wrist (0.12 m from the centre) over the shoulder's range, in image coordinates.
+        let reacher = crate::envs::Reacher::new(Default::default());
+        let camera = reacher.config().camera;
+        let angles: Vec<f32> = (0..=64)
+            .map(|i| (-160.0 + 5.0 * i as f64).to_radians())
+            .map(|q0| {
+                let (wrist, _) = reacher.forward_kinematics([q0, 0.0]);
+                let (col, row) = camera.project(wrist[0], wrist[1]);
+                let (x, y) = (col as f32 / 32.0 - 1.0, row as f32 / 32.0 - 1.0);
+                (y * ax - x * ay).atan2(x * ax + y * ay)
+            })
+            .collect();
+        assert!(
+            angles.windows(2).all(|w| w[1] < w[0]),
+            "wrist angle not monotone in q0: {angles:?}"
+        );
+        let margin = std::f32::consts::PI - 0.1;
+        assert!(angles.iter().all(|a| a.abs() < margin), "{angles:?}");
+    }
+
+    #[test]
+    fn polar_grid_measures_angles_from_the_axis_and_cuts_opposite() {
+        let device = cpu_device();
+        let t3 = |v: Vec<f32>| Tensor::<3>::from_data(TensorData::new(v, [1, 1, 4]), &device);
+        // Points at radius 0.5: along +x, along +y (image rows grow downwards), just either side
+        // of -x, and one at the centre.
+        let x = t3(vec![0.5, 0.0, -0.5, 0.0]);
+        let y = t3(vec![0.0, 0.5, -0.001, 0.0]);
+        let fade = 0.25 / (0.25 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
+        let axis = |v: [f32; 2]| Tensor::<1>::from_data(TensorData::new(v.to_vec(), [2]), &device);
+        let (angle, radius) = polar_grid(x.clone(), y.clone(), axis([1.0, 0.0]));
+        let (angle, radius) = (to_vec(angle), to_vec(radius));
+        let pi = std::f32::consts::PI;
+        for (got, want) in angle.iter().zip([0.0, pi / 2.0 * fade, -pi * fade, 0.0]) {
+            assert!((got - want).abs() < 0.01, "{angle:?}");
+        }
+        for (got, want) in radius.iter().zip([0.5, 0.5, 0.5, 0.0]) {
+            assert!((got - want).abs() < 1e-3, "{radius:?}");
+        }
+        // With the axis along +y the cut moves to -y: the point along +x is now at -pi/2 and
+        // the one near -x at +pi/2, continuous across the old cut.
+        let (angle, _) = polar_grid(x, y, axis([0.0, 1.0]));
+        let angle = to_vec(angle);
+        assert!((angle[0] + pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
+        assert!((angle[2] - pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
     }
 
     #[test]

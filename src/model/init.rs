@@ -41,6 +41,7 @@ impl ModuleMapper for SeededInit {
             || name == "log_sharpness"
             || name == "log_input_gain"
             || name == super::LATENT_TRANSFORM
+            || name == super::encoder::POLAR_AXIS
         {
             return param;
         }

@@ -142,6 +142,12 @@ fn standardised_risk_cannot_be_lowered_by_shrinking_the_latent() {
     };
     let err = bad.validate().unwrap_err().to_string();
     assert!(err.contains("loss.risk_latent_std"), "{err}");
+    let bad = LossConfig {
+        decorrelation_weight: -1.0,
+        ..LossConfig::default()
+    };
+    let err = bad.validate().unwrap_err().to_string();
+    assert!(err.contains("loss.decorrelation_weight"), "{err}");
 }
 
 #[test]
@@ -259,6 +265,16 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     assert_eq!(expected, cell);
     let (mut expected, cell) = stop14("stop14_risk_latent_std=0.1");
     expected.loss.risk_latent_std = Some(0.1);
+    assert_eq!(expected, cell);
+    // Stop 15: the polar head with a linear output, oriented by the action response.
+    let (mut expected, cell) = stop14("stop15_polar_action-response_risk_latent_std=0.1");
+    expected.orientation_criterion = procl::orientation::OrientationCriterion::ActionResponse;
+    expected.loss.risk_latent_std = Some(0.1);
+    expected.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
+        keypoints: 16,
+        hidden: 0,
+        polar: true,
+    };
     assert_eq!(expected, cell);
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
