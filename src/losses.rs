@@ -57,9 +57,11 @@ pub struct LossConfig {
     /// Compute the Lyapunov risk on the batch-standardised latent `c h / std(h)` (per
     /// dimension, batch std of `h_t`, gradient through the std) with `c` this value (`None`: on
     /// `h` as it is, the paper). The risk then cannot be lowered by shrinking the latent, and
-    /// its scale against the hindsight offset `u / Kp` is fixed at `c`. Experimental: the
-    /// controller still runs on `h` (docs/method.md, Reacher-2D stop 14).
-    #[serde(default)]
+    /// its scale against the hindsight offset `u / Kp` is fixed at `c`. The controller runs
+    /// on `h`, so `Kp` and `Kd` should match `h`'s scale over `c` (the reacher preset: `c = 1`
+    /// and gains scaled down; docs/method.md, Reacher-2D stop 15). In a config file `0` means
+    /// off (the way to undo a preset that sets it).
+    #[serde(default, deserialize_with = "zero_is_none")]
     pub risk_latent_std: Option<f64>,
     #[serde(default = "default_variance_weight")]
     pub variance_weight: f64,
@@ -70,6 +72,14 @@ pub struct LossConfig {
     /// band. Independent random joints in the data make uncorrelated latent axes joint-like.
     #[serde(default)]
     pub decorrelation_weight: f64,
+}
+
+/// Reads an optional number where `0` (like a missing value) means off.
+fn zero_is_none<'de, D: serde::Deserializer<'de>>(
+    deserializer: D,
+) -> std::result::Result<Option<f64>, D::Error> {
+    let value: Option<f64> = serde::Deserialize::deserialize(deserializer)?;
+    Ok(value.filter(|&v| v != 0.0))
 }
 
 fn default_variance_weight() -> f64 {

@@ -204,18 +204,30 @@ impl TrainConfig {
             }
         }
         if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
-            // Joint angles are not linear in any image position: a tanh layer after the
-            // keypoints, a latent started at unit spread and a variance floor that keeps the
-            // Lyapunov risk from shrinking it open the reacher's ring-shaped latent into a
-            // PD-controllable one (docs/method.md, Reacher-2D: 0% without, 50-60% with).
+            // The shoulder is a revolute joint at the image centre: keypoints in polar
+            // coordinates about it make its angle a latent coordinate (Cartesian keypoints give
+            // a ring), a tanh layer after them brings in the wrist, a latent started at unit
+            // spread and a variance floor keep it from collapsing, and the action response
+            // orients it (the risk search cannot tell the candidates apart here). The risk is
+            // computed on the standardised latent (`risk_latent_std = 1`) so it cannot shrink
+            // it, with gains that match that scale: the risk is homogeneous of degree 2 in the
+            // latent, so `Kp = 1, Kd = 0.2, lambda_R = 0.1` trains the paper's
+            // `Kp = 10, Kd = 2, lambda_R = 10` objective on a latent of std 0.1, while the
+            // controller on `h` gets the gains the risk trained for (docs/method.md,
+            // Reacher-2D stop 15).
             config.model.encoder.head = EncoderHead::SoftArgmax {
                 keypoints: 16,
                 hidden: 32,
-                polar: false,
+                polar: true,
             };
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.variance_floor = Some(1.0);
             config.loss.variance_weight = 10.0;
+            config.orientation_criterion = OrientationCriterion::ActionResponse;
+            config.loss.risk_latent_std = Some(1.0);
+            config.loss.kp = 1.0;
+            config.loss.kd = 0.2;
+            config.loss.lambda_r /= 100.0;
         }
         if env == EnvKind::Fetch {
             // spec.md 3: dt_R = 1 for Fetch (the env's control dt for the 2D envs).
@@ -609,11 +621,14 @@ impl Objective for ProclObjective<'_> {
     const METRICS: &'static [&'static str] = &LOSS_NAMES;
 
     fn prepare(&mut self, mut model: ProclModel) -> ProclModel {
-        let frames = scale_frames(self.data, self.config.seed, self.device);
-        model.encoder = model.encoder.place_polar_cut(frames.clone());
+        let data = self.data;
+        let every_frame =
+            (0..data.episodes()).flat_map(|e| (0..=data.steps()).map(move |t| data.frame(e, t)));
+        model.encoder = model.encoder.place_polar_cut(every_frame);
         if let Some(target_std) = self.config.model.encoder.init_latent_std
             && target_std > 0.0
         {
+            let frames = scale_frames(self.data, self.config.seed, self.device);
             model.encoder = model.encoder.normalise_latent_scale(frames, target_std);
         }
         model
@@ -894,16 +909,23 @@ mod tests {
             let reacher = TrainConfig::preset(preset, Method::Procl, EnvKind::Reacher);
             assert_eq!(reacher.loss.lyapunov_dt_s, None);
         }
-        // Fetch (both latent methods) orients by the action response; the 2D envs keep the
-        // risk search their results were measured with, and the paper preset searches nothing.
-        for method in [Method::Procl, Method::Pc3] {
-            let fetch = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
-            assert_eq!(
-                fetch.orientation_criterion,
-                OrientationCriterion::ActionResponse
-            );
-            assert_eq!(fetch.orientation_search_every, 50);
+        // Fetch and the reacher (both latent methods) orient by the action response; the point
+        // mass keeps the risk search its results were measured with, and the paper preset
+        // searches nothing.
+        for env in [EnvKind::Fetch, EnvKind::Reacher] {
+            for method in [Method::Procl, Method::Pc3] {
+                let config = TrainConfig::preset(Preset::Procl, method, env);
+                assert_eq!(
+                    config.orientation_criterion,
+                    OrientationCriterion::ActionResponse
+                );
+                assert_eq!(config.orientation_search_every, 50);
+            }
         }
+        // The reacher's gain-matched risk keeps PC3 at lambda_R = 0.
+        let reacher_pc3 = TrainConfig::preset(Preset::Procl, Method::Pc3, EnvKind::Reacher);
+        assert_eq!(reacher_pc3.loss.lambda_r, 0.0);
+        assert_eq!(reacher_pc3.loss.kp, 1.0);
         let point_mass = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
         assert_eq!(
             (

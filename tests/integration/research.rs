@@ -245,20 +245,34 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     assert_eq!(floor.loss.variance_floor, Some(1.0));
     assert_eq!(floor.steps, 1200);
     assert_eq!(floor.model.encoder.init_latent_std, Some(1.0));
-    // The reacher's procl preset is the design that cell measured.
-    let (_, cell) = configs
-        .iter()
-        .find(|(name, _)| name == "tanh-head_std1_floor=10")
-        .unwrap();
-    let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-    preset.steps = cell.steps;
-    assert_eq!(&preset, cell);
-    // Each stop-14 cell is that preset at 1200 steps plus its one change.
-    let stop14 = |name: &str| {
+    // The reacher's procl preset is the design the stop-15 cell measured.
+    let cell = |name: &str| {
         let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
-        let mut expected = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        cell.clone()
+    };
+    let new_design = cell("stop15_polar_tanh-head_action-response_risk_latent_std=1_kp=1");
+    let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+    preset.steps = new_design.steps;
+    assert_eq!(preset, new_design);
+    // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
+    // steps plus its changes.
+    let stop13_design = cell("tanh-head_std1_floor=10");
+    // `[base]` undoes stop 15's additions, so the stop-13 cell is that design exactly.
+    let mut undone = preset.clone();
+    undone.steps = stop13_design.steps;
+    undone.orientation_criterion = procl::orientation::OrientationCriterion::Risk;
+    undone.loss.risk_latent_std = None;
+    (undone.loss.kp, undone.loss.kd, undone.loss.lambda_r) = (10.0, 2.0, 10.0);
+    undone.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
+        keypoints: 16,
+        hidden: 32,
+        polar: false,
+    };
+    assert_eq!(undone, stop13_design);
+    let stop14 = |name: &str| {
+        let mut expected = stop13_design.clone();
         expected.steps = 1200;
-        (expected, cell.clone())
+        (expected, cell(name))
     };
     let (mut expected, cell) = stop14("stop14_action-response");
     expected.orientation_criterion = procl::orientation::OrientationCriterion::ActionResponse;
@@ -276,6 +290,21 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         polar: true,
     };
     assert_eq!(expected, cell);
+    // The new preset is the stop-13 design plus the polar head, the action response and the
+    // gain-matched standardised risk.
+    let mut expected = stop13_design.clone();
+    expected.steps = 1200;
+    expected.orientation_criterion = procl::orientation::OrientationCriterion::ActionResponse;
+    expected.loss.risk_latent_std = Some(1.0);
+    expected.loss.kp = 1.0;
+    expected.loss.kd = 0.2;
+    expected.loss.lambda_r = 0.1;
+    expected.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
+        keypoints: 16,
+        hidden: 32,
+        polar: true,
+    };
+    assert_eq!(expected, new_design);
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
     let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
