@@ -254,6 +254,12 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
     preset.steps = new_design.steps;
     assert_eq!(preset, new_design);
+    let mut pc3_preset = TrainConfig::preset(Preset::Procl, Method::Pc3, EnvKind::Reacher);
+    pc3_preset.steps = 1200;
+    assert_eq!(
+        pc3_preset,
+        cell("stop15_pc3_polar_tanh-head_action-response_risk_latent_std=1_kp=1")
+    );
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.
     let stop13_design = cell("tanh-head_std1_floor=10");
