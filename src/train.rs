@@ -129,6 +129,15 @@ pub struct TrainConfig {
     /// `--resume` (the count restarts).
     #[serde(default = "default_orientation_streak")]
     pub orientation_streak: u64,
+    /// Draw the batch in groups of this many samples from one stretch of one episode (1: every
+    /// sample independent, the paper's). Frames a few steps apart differ a little in every
+    /// joint, so as CPC negatives they ask the latent to resolve small moves of each joint,
+    /// where independent samples are told apart by the joint that moves the image most.
+    #[serde(default = "default_batch_group_size")]
+    pub batch_group_size: usize,
+    /// The length in steps of that stretch (at least `batch_group_size`; unused at 1).
+    #[serde(default)]
+    pub batch_group_window: usize,
     /// ProCL's and PC3's losses and networks (unused by `nvae`).
     pub loss: LossConfig,
     pub model: ModelConfig,
@@ -143,6 +152,10 @@ fn default_orientation_margin() -> f64 {
 }
 
 fn default_orientation_streak() -> u64 {
+    1
+}
+
+fn default_batch_group_size() -> usize {
     1
 }
 
@@ -178,6 +191,8 @@ impl TrainConfig {
             orientation_streak: default_orientation_streak(),
             orientation_criterion: OrientationCriterion::Risk,
             orientation_tolerance: default_orientation_tolerance(),
+            batch_group_size: default_batch_group_size(),
+            batch_group_window: 0,
             loss: LossConfig::default(),
             model: ModelConfig::for_action_dim(du),
             nvae: None,
@@ -265,6 +280,24 @@ impl TrainConfig {
                 format!(
                     "{} must be at least 2 (CPC needs negatives)",
                     self.batch_size
+                ),
+            ));
+        }
+        if self.batch_group_size == 0 || !self.batch_size.is_multiple_of(self.batch_group_size) {
+            return Err(Error::config(
+                "batch_group_size",
+                format!(
+                    "{} must be at least 1 and divide batch_size = {}",
+                    self.batch_group_size, self.batch_size
+                ),
+            ));
+        }
+        if self.batch_group_size > 1 && self.batch_group_window < self.batch_group_size {
+            return Err(Error::config(
+                "batch_group_window",
+                format!(
+                    "{} must be at least batch_group_size = {} (distinct steps in a group)",
+                    self.batch_group_window, self.batch_group_size
                 ),
             ));
         }
@@ -452,6 +485,31 @@ pub(crate) fn sample_batch(data: &Dataset, rng: &mut ChaCha8Rng, n: usize) -> Ve
         .collect()
 }
 
+/// `n` samples in groups of `group` distinct steps of one episode, inside a stretch of
+/// `window` consecutive steps (shortened to the episode's if longer).
+pub(crate) fn sample_grouped_batch(
+    data: &Dataset,
+    rng: &mut ChaCha8Rng,
+    n: usize,
+    group: usize,
+    window: usize,
+) -> Vec<(usize, usize)> {
+    // Valid steps are 1..steps: each sample needs the frames t - 1, t and t + 1.
+    let window = window.min(data.steps() - 1);
+    let mut batch = Vec::with_capacity(n);
+    while batch.len() < n {
+        let episode = rng.random_range(0..data.episodes());
+        let start = rng.random_range(1..=data.steps() - window);
+        let take = group.min(window).min(n - batch.len());
+        batch.extend(
+            rand::seq::index::sample(rng, window, take)
+                .into_iter()
+                .map(|offset| (episode, start + offset)),
+        );
+    }
+    batch
+}
+
 /// `[n, d]` standard normal draws from `rng` (Box-Muller; deterministic for a seed).
 pub(crate) fn normal_tensor(
     rng: &mut ChaCha8Rng,
@@ -513,7 +571,17 @@ pub fn loss_inputs(
     let mut rng = step_rng(config.seed, step);
     let n = config.batch_size;
     let du = data.action_dim();
-    let batch = sample_batch(data, &mut rng, n);
+    let batch = if config.batch_group_size > 1 {
+        sample_grouped_batch(
+            data,
+            &mut rng,
+            n,
+            config.batch_group_size,
+            config.batch_group_window,
+        )
+    } else {
+        sample_batch(data, &mut rng, n)
+    };
     let (frames, u) = batch_tensors(data, &batch, device);
     let h = model.encoder.forward(frames); // [3n, du]
     let mut permutation: Vec<usize> = (0..n).collect();
@@ -953,6 +1021,52 @@ mod tests {
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("orientation_search_every"), "{err}");
         config.orientation_search_every = 0;
+        assert!(config.validate().is_ok());
+    }
+
+    #[test]
+    fn grouped_batches_take_distinct_nearby_steps_of_one_episode() {
+        let config = crate::data::CollectConfig {
+            transitions: 120,
+            episode_len: 20,
+            ..crate::data::CollectConfig::new(EnvKind::PointMass, 3)
+        };
+        let data = crate::data::collect(&config, |_| {}).expect("collect");
+        let mut rng = step_rng(7, 0);
+        let batch = sample_grouped_batch(&data, &mut rng, 24, 4, 6);
+        assert_eq!(batch.len(), 24);
+        for group in batch.chunks(4) {
+            let mut steps: Vec<usize> = group.iter().map(|&(_, t)| t).collect();
+            assert!(group.iter().all(|&(e, _)| e == group[0].0 && e < 6));
+            steps.sort_unstable();
+            steps.dedup();
+            assert_eq!(steps.len(), 4, "distinct steps {group:?}");
+            // Inside one stretch of 6 steps, and a whole sample (t - 1, t + 1) in the episode.
+            assert!(steps[3] - steps[0] < 6, "{group:?}");
+            assert!(steps[0] >= 1 && steps[3] < 20, "{group:?}");
+        }
+        // Seeded: the same stream gives the same batch.
+        assert_eq!(
+            batch,
+            sample_grouped_batch(&data, &mut step_rng(7, 0), 24, 4, 6)
+        );
+        // A window longer than the episode is cut to it.
+        let long = sample_grouped_batch(&data, &mut rng, 8, 4, 500);
+        assert!(long.iter().all(|&(_, t)| (1..20).contains(&t)));
+    }
+
+    #[test]
+    fn batch_groups_are_checked_by_name() {
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        config.batch_group_size = 3;
+        config.batch_group_window = 8;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("batch_group_size"), "{err}");
+        config.batch_group_size = 4;
+        config.batch_group_window = 2;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("batch_group_window"), "{err}");
+        config.batch_group_window = 8;
         assert!(config.validate().is_ok());
     }
 
