@@ -65,6 +65,13 @@ pub struct LossConfig {
     pub risk_latent_std: Option<f64>,
     #[serde(default = "default_variance_weight")]
     pub variance_weight: f64,
+    /// Which axes the variance floor holds: the latent's coordinates (`coordinates`, VICReg's)
+    /// or the principal axes of the batch's covariance (`principal`). A floor per coordinate
+    /// is met by a thin band turned diagonally, which keeps a joint that moves the image little
+    /// squeezed across the band, and it turns the latent against the orientation search; the
+    /// principal floor holds the thinnest direction of the cloud whatever its orientation.
+    #[serde(default)]
+    pub variance_axes: VarianceAxes,
     /// Decorrelation (VICReg's covariance term, on correlations so it is scale-free): adds
     /// `decorrelation_weight * mean_{i != j} corr(h_i, h_j)^2` over the batch's `h_t` (0: off,
     /// the paper). The variance floor holds each dimension's spread but not its content; on the
@@ -72,6 +79,17 @@ pub struct LossConfig {
     /// band. Independent random joints in the data make uncorrelated latent axes joint-like.
     #[serde(default)]
     pub decorrelation_weight: f64,
+}
+
+/// The axes the variance floor holds (see [`LossConfig::variance_axes`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum VarianceAxes {
+    /// Each latent coordinate's std (VICReg's).
+    #[default]
+    Coordinates,
+    /// The std along each eigenvector of the batch covariance: its square roots of eigenvalues.
+    Principal,
 }
 
 /// Reads an optional number where `0` (like a missing value) means off.
@@ -91,6 +109,72 @@ pub fn variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
     relu(batch_std(h).neg().add_scalar(floor))
         .mean()
         .reshape([1])
+}
+
+/// `mean_k max(0, floor - sqrt(lambda_k))` over the eigenvalues `lambda_k` of the batch
+/// covariance of `h [n, du]`: the variance hinge on the principal axes. The eigenvectors are
+/// computed outside the graph and held constant; the variance along a fixed unit vector `w`
+/// is `w^T C w`, whose gradient at an eigenvector is `w w^T`, the eigenvalue's own gradient, so
+/// this is the exact gradient of the hinge on the eigenvalues.
+pub fn principal_variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
+    let [n, du] = h.dims();
+    let centred = h.clone() - h.mean_dim(0);
+    let covariance = centred.clone().transpose().matmul(centred.clone()) / n as f64;
+    let values: Vec<f64> = covariance.into_data().iter::<f64>().collect();
+    let axes = symmetric_eigenvectors(&values, du);
+    let axes: Vec<f32> = axes.iter().map(|&x| x as f32).collect();
+    let axes = Tensor::<2>::from_data(TensorData::new(axes, [du, du]), &centred.device());
+    variance_hinge(centred.matmul(axes), floor)
+}
+
+/// The eigenvectors of the symmetric `du x du` matrix `a` (row-major) as the columns of a
+/// row-major matrix, by cyclic Jacobi rotations (`du` is the action dimension, 2 or 3, so a
+/// linear-algebra crate would be a large dependency for a few lines).
+fn symmetric_eigenvectors(a: &[f64], du: usize) -> Vec<f64> {
+    let mut a = a.to_vec();
+    let mut v: Vec<f64> = (0..du * du)
+        .map(|k| if k / du == k % du { 1.0 } else { 0.0 })
+        .collect();
+    for _sweep in 0..50 {
+        let off: f64 = (0..du)
+            .flat_map(|i| (0..du).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| a[i * du + j].powi(2))
+            .sum();
+        let scale: f64 = a.iter().map(|x| x * x).sum();
+        if off <= 1e-24 * scale.max(f64::MIN_POSITIVE) {
+            break;
+        }
+        for p in 0..du {
+            for q in p + 1..du {
+                let apq = a[p * du + q];
+                if apq == 0.0 {
+                    continue;
+                }
+                // The rotation in the (p, q) plane that zeroes a[p][q] (Golub & Van Loan 8.5).
+                let theta = (a[q * du + q] - a[p * du + p]) / (2.0 * apq);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for k in 0..du {
+                    let (akp, akq) = (a[k * du + p], a[k * du + q]);
+                    a[k * du + p] = c * akp - s * akq;
+                    a[k * du + q] = s * akp + c * akq;
+                }
+                for k in 0..du {
+                    let (apk, aqk) = (a[p * du + k], a[q * du + k]);
+                    a[p * du + k] = c * apk - s * aqk;
+                    a[q * du + k] = s * apk + c * aqk;
+                }
+                for k in 0..du {
+                    let (vkp, vkq) = (v[k * du + p], v[k * du + q]);
+                    v[k * du + p] = c * vkp - s * vkq;
+                    v[k * du + q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    v
 }
 
 /// `mean_{i != j} corr(h_i, h_j)^2` over the columns of `h [n, du]` (0 for du = 1).
@@ -148,6 +232,7 @@ impl Default for LossConfig {
             normalise_risk: false,
             variance_floor: None,
             variance_weight: default_variance_weight(),
+            variance_axes: VarianceAxes::Coordinates,
             risk_latent_std: None,
             decorrelation_weight: 0.0,
         }
@@ -485,7 +570,11 @@ pub fn procl_loss(
         + curv.clone() * config.lambda_curv;
     let mut total = pc3 * config.lambda_pc3 + lyap.clone() * config.lambda_r;
     if let Some(floor) = config.variance_floor {
-        total = total + variance_hinge(h_now_for_variance.clone(), floor) * config.variance_weight;
+        let hinge = match config.variance_axes {
+            VarianceAxes::Coordinates => variance_hinge(h_now_for_variance.clone(), floor),
+            VarianceAxes::Principal => principal_variance_hinge(h_now_for_variance.clone(), floor),
+        };
+        total = total + hinge * config.variance_weight;
     }
     if config.decorrelation_weight > 0.0 {
         total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
@@ -681,6 +770,61 @@ mod tests {
         assert!((scalar(variance_hinge(h.clone(), 1.0)) - 0.375).abs() < 1e-5);
         // floor 0.2: both columns above.
         assert!(scalar(variance_hinge(h, 0.2)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn jacobi_diagonalises_a_symmetric_matrix() {
+        // [[2, 1, 0], [1, 2, 0], [0, 0, 5]]: eigenvalues 1, 3, 5 with (1, -1, 0) / sqrt 2 ...
+        let a = [2.0, 1.0, 0.0, 1.0, 2.0, 0.0, 0.0, 0.0, 5.0];
+        let v = symmetric_eigenvectors(&a, 3);
+        let mut lambdas = Vec::new();
+        for k in 0..3 {
+            let w: Vec<f64> = (0..3).map(|i| v[i * 3 + k]).collect();
+            let aw: Vec<f64> = (0..3)
+                .map(|i| (0..3).map(|j| a[i * 3 + j] * w[j]).sum())
+                .collect();
+            let lambda: f64 = (0..3).map(|i| w[i] * aw[i]).sum();
+            // A unit eigenvector: A w = lambda w.
+            assert!((w.iter().map(|x| x * x).sum::<f64>() - 1.0).abs() < 1e-12);
+            for i in 0..3 {
+                assert!((aw[i] - lambda * w[i]).abs() < 1e-10, "{aw:?} {w:?}");
+            }
+            lambdas.push(lambda);
+        }
+        lambdas.sort_by(f64::total_cmp);
+        for (got, want) in lambdas.iter().zip([1.0, 3.0, 5.0]) {
+            assert!((got - want).abs() < 1e-10, "{lambdas:?}");
+        }
+    }
+
+    #[test]
+    fn principal_hinge_sees_a_thin_band_turned_diagonally() {
+        let device = cpu_device();
+        // Points (t, t) + s (1, -1) for t in {-2, 2}, s in {-0.1, 0.1}: along the diagonal the
+        // std is 2 sqrt 2, across it 0.1 sqrt 2 (population), while each coordinate's std is
+        // sqrt(4 + 0.01) > 1.
+        let mut points = Vec::new();
+        for t in [-2.0f32, 2.0] {
+            for s in [-0.1f32, 0.1] {
+                points.extend([t + s, t - s]);
+            }
+        }
+        let h = t2(&points, 4, 2, &device);
+        assert!(scalar(variance_hinge(h.clone(), 1.0)).abs() < 1e-6);
+        // Principal: max(0, 1 - 2.83) = 0 and 1 - 0.1414 -> mean 0.4293 (by hand).
+        let want = (1.0 - 0.1 * 2f64.sqrt()) / 2.0;
+        let got = scalar(principal_variance_hinge(h.clone(), 1.0));
+        assert!((got - want).abs() < 1e-5, "{got} vs {want}");
+        // Uncorrelated columns of std 1 and 0.25: the principal axes are the coordinates and
+        // both hinges give (0 + 0.75) / 2.
+        let h = t2(
+            &[1.0, 0.25, 1.0, -0.25, -1.0, 0.25, -1.0, -0.25],
+            4,
+            2,
+            &device,
+        );
+        assert!((scalar(variance_hinge(h.clone(), 1.0)) - 0.375).abs() < 1e-5);
+        assert!((scalar(principal_variance_hinge(h, 1.0)) - 0.375).abs() < 1e-5);
     }
 
     #[test]
