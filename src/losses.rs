@@ -828,6 +828,46 @@ mod tests {
     }
 
     #[test]
+    fn principal_hinge_gradient_is_the_eigenvalue_gradient() {
+        // The hinge on a 2x2 covariance's eigenvalues in closed form, in f64.
+        fn hinge(points: &[f64]) -> f64 {
+            let n = points.len() / 2;
+            let mean = |c: usize| (0..n).map(|i| points[2 * i + c]).sum::<f64>() / n as f64;
+            let (m0, m1) = (mean(0), mean(1));
+            let cov = |a: usize, ma: f64, b: usize, mb: f64| {
+                (0..n)
+                    .map(|i| (points[2 * i + a] - ma) * (points[2 * i + b] - mb))
+                    .sum::<f64>()
+                    / n as f64
+            };
+            let (c00, c01, c11) = (cov(0, m0, 0, m0), cov(0, m0, 1, m1), cov(1, m1, 1, m1));
+            let half_trace = (c00 + c11) / 2.0;
+            let gap = (((c00 - c11) / 2.0).powi(2) + c01 * c01).sqrt();
+            [half_trace + gap, half_trace - gap]
+                .iter()
+                .map(|l| (1.0 - l.sqrt()).max(0.0))
+                .sum::<f64>()
+                / 2.0
+        }
+        let points = [0.3, 0.1, -0.5, 0.4, 0.9, -0.2, -0.1, -0.6, 0.2, 0.5];
+        let device = cpu_device().autodiff();
+        let as_f32: Vec<f32> = points.iter().map(|&x| x as f32).collect();
+        let h = Tensor::<2>::from_data(TensorData::new(as_f32, [5, 2]), &device).require_grad();
+        let loss = principal_variance_hinge(h.clone(), 1.0);
+        assert!((scalar(loss.clone()) - hinge(&points)).abs() < 1e-5);
+        let grads = loss.backward();
+        let got = to_vec(h.grad(&grads).expect("gradient of h"));
+        for k in 0..points.len() {
+            let (mut up, mut down) = (points, points);
+            up[k] += 1e-6;
+            down[k] -= 1e-6;
+            let want = (hinge(&up) - hinge(&down)) / 2e-6;
+            let got = f64::from(got[k]);
+            assert!((got - want).abs() < 1e-3, "d/dh[{k}]: {got} vs {want}");
+        }
+    }
+
+    #[test]
     fn correlation_penalty_is_the_squared_off_diagonal_correlation() {
         let device = cpu_device();
         // Columns (1, 2, 3) and (1, 3, 2): deviations (-1, 0, 1), (-1, 1, 0), covariance 1/3,
