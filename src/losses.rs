@@ -297,11 +297,24 @@ pub fn pairwise_gaussian_log_density(
     x: Tensor<2>,
     mean: Tensor<2>,
     log_std: Tensor<1>,
+    precision_lower: Option<Tensor<2>>,
 ) -> Tensor<2> {
     let [n, d] = x.dims();
     let m = mean.dims()[0];
     let inv_std = log_std.clone().neg().exp().reshape([1, 1, d]);
-    let diff = (x.reshape([n, 1, d]) - mean.reshape([1, m, d])) * inv_std; // [n, m, d]
+    let raw = x.reshape([n, 1, d]) - mean.reshape([1, m, d]); // [n, m, d]
+    let diff = raw.clone() * inv_std.clone();
+    // With a full covariance, `W d` where `W = diag(exp(-log_std)) + L` (`L` strictly lower):
+    // the rows here are `d^T`, so add `d^T L^T`. Its determinant is still the diagonal's.
+    let diff = match precision_lower {
+        Some(lower) => {
+            diff + raw
+                .reshape([n * m, d])
+                .matmul(lower.transpose())
+                .reshape([n, m, d])
+        }
+        None => diff,
+    };
     let quad = diff.powi_scalar(2).sum_dim(2).reshape([n, m]) * (-0.5);
     let norm = log_std.sum() + 0.5 * d as f64 * (2.0 * std::f64::consts::PI).ln();
     quad - norm.reshape([1, 1])
@@ -510,8 +523,12 @@ pub fn procl_loss(
     let z_next = unoriented(h_next_noisy.clone(), v_next_noisy.clone());
     let z_predicted = unoriented(predicted.h_next, predicted.v_next);
     let du = h_now.dims()[1] as f64;
-    let log_density =
-        pairwise_gaussian_log_density(z_next, z_predicted, dynamics.log_std.val()) + du * dt.ln();
+    let log_density = pairwise_gaussian_log_density(
+        z_next,
+        z_predicted,
+        dynamics.log_std.val(),
+        dynamics.precision_off_diagonal(),
+    ) + du * dt.ln();
     let cpc = cpc_loss(log_density.clone());
     let cons = consistency_loss(log_density);
     let (eta_h, eta_v, eta_u) = curvature_noise;
@@ -628,7 +645,7 @@ mod tests {
         let x = t2(&[0.0, 0.0, 1.0, 2.0], 2, 2, &device);
         let mean = t2(&[0.0, 1.0, 1.0, -1.0, -2.0, 0.5], 3, 2, &device);
         let log_std = t1(&[0.5f32.ln(), 2.0f32.ln()], &device);
-        let out = pairwise_gaussian_log_density(x, mean, log_std);
+        let out = pairwise_gaussian_log_density(x.clone(), mean.clone(), log_std.clone(), None);
         assert_eq!(out.dims(), [2, 3]);
         // numpy, through the full covariance (not the per-dimension formula used here):
         //   cov = diag(exp(2 log_std)); out[i, j] = -0.5 d^T cov^-1 d - 0.5 log((2 pi)^2 det cov)
@@ -642,6 +659,26 @@ mod tests {
             -20.119127066,
         ];
         assert_close(&to_vec(out), &want, 1e-5, "log density");
+
+        // Full covariance: W = [[2, 0], [0.7, 0.5]], so the precision W^T W is
+        // [[4.49, 0.35], [0.35, 0.25]] and log det W = ln 1 = 0 (by hand).
+        let lower = t2(&[0.0, 0.0, 0.7, 0.0], 2, 2, &device);
+        let out = pairwise_gaussian_log_density(x, mean, log_std, Some(lower));
+        let (xs, means) = (
+            [[0.0, 0.0], [1.0, 2.0]],
+            [[0.0, 1.0], [1.0, -1.0], [-2.0, 0.5]],
+        );
+        let want: Vec<f64> = xs
+            .iter()
+            .flat_map(|x| {
+                means.iter().map(move |m| {
+                    let (d0, d1) = (x[0] - m[0], x[1] - m[1]);
+                    let quad = 4.49 * d0 * d0 + 2.0 * 0.35 * d0 * d1 + 0.25 * d1 * d1;
+                    -0.5 * quad - (2.0 * std::f64::consts::PI).ln()
+                })
+            })
+            .collect();
+        assert_close(&to_vec(out), &want, 1e-5, "full-covariance log density");
     }
 
     /// An asymmetric matrix, so row-wise and column-wise softmax give different losses.

@@ -21,6 +21,13 @@ pub struct DynamicsConfig {
     /// How the action enters the latent acceleration.
     #[serde(default)]
     pub input: DynamicsInput,
+    /// A full covariance for the transition density (`false`: diagonal, the paper's). Its
+    /// precision is `W^T W` with `W` lower triangular: the diagonal `exp(-log_std)` and a
+    /// learned strict lower part, started at 0. A diagonal std is fixed to the latent's axes,
+    /// so when the prediction error of one joint runs diagonally it sets the std of both axes,
+    /// and CPC cannot resolve a thin direction across it.
+    #[serde(default)]
+    pub full_covariance: bool,
 }
 
 /// How `u` enters `a`, the latent acceleration of [`Dynamics`].
@@ -49,6 +56,7 @@ impl DynamicsConfig {
             hidden: 64,
             init_std: 0.1,
             input: DynamicsInput::Mlp,
+            full_covariance: false,
         }
     }
 
@@ -94,6 +102,9 @@ impl DynamicsConfig {
             fc2: LinearConfig::new(self.hidden, self.hidden).init(device),
             fc3: LinearConfig::new(self.hidden, d).init(device),
             log_std: Param::from_tensor(Tensor::full([2 * d], self.init_std.ln(), device)),
+            precision_lower: self
+                .full_covariance
+                .then(|| Param::from_tensor(Tensor::zeros([2 * d, 2 * d], device))),
             log_input_gain,
             latent_transform: super::transform_param(d, device),
         }
@@ -111,6 +122,9 @@ pub struct Dynamics {
     /// Log std of the transition density over unoriented `(h', dt v')`, `[2 du]`: velocities are
     /// scored as per-step displacements so both halves share one scale (see `losses::procl_loss`).
     pub log_std: Param<Tensor<1>>,
+    /// The strict lower part of the precision factor `W` (`[2 du, 2 du]`, only the entries
+    /// below the diagonal are used) when `full_covariance` is on.
+    pub precision_lower: Option<Param<Tensor<2>>>,
     /// `log b` of [`DynamicsInput::ConstantDiagonal`], `[du]` (absent for [`DynamicsInput::Mlp`]).
     pub log_input_gain: Option<Param<Tensor<1>>>,
     /// The encoder's orientation `Q` (kept equal to it): the MLP works in unoriented
@@ -153,6 +167,22 @@ impl Dynamics {
     /// Unoriented rows back to latent coordinates: `x Q^T`.
     fn oriented(&self, x: Tensor<2>) -> Tensor<2> {
         x.matmul(self.latent_transform.val().transpose())
+    }
+
+    /// The strictly lower triangular part of the precision factor, `[2 du, 2 du]`, if any.
+    pub fn precision_off_diagonal(&self) -> Option<Tensor<2>> {
+        self.precision_lower.as_ref().map(|lower| {
+            let value = lower.val();
+            let d = value.dims()[0];
+            let mask: Vec<f32> = (0..d * d)
+                .map(|k| if k % d < k / d { 1.0 } else { 0.0 })
+                .collect();
+            let mask = Tensor::<2>::from_data(
+                burn::tensor::TensorData::new(mask, [d, d]),
+                &value.device(),
+            );
+            value * mask
+        })
     }
 
     /// `b` of [`DynamicsInput::ConstantDiagonal`] as a row `[1, du]`.
