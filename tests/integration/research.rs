@@ -311,6 +311,37 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         polar: true,
     };
     assert_eq!(expected, new_design);
+    // Stop 16: each cell is the preset plus the one change its name says.
+    let stop16 = |name: &str, change: &dyn Fn(&mut TrainConfig)| {
+        let mut expected = new_design.clone();
+        change(&mut expected);
+        let (_, got) = configs.iter().find(|(n, _)| n == name).unwrap();
+        assert_eq!(&expected, got, "{name}");
+    };
+    stop16("stop16_preset_orientation_tolerance=0.8", &|c| {
+        c.orientation_tolerance = 0.8
+    });
+    stop16("stop16_preset_variance_axes=principal", &|c| {
+        c.loss.variance_axes = procl::losses::VarianceAxes::Principal
+    });
+    stop16("stop16_preset_batch_group=8x8", &|c| {
+        (c.batch_group_size, c.batch_group_window) = (8, 8)
+    });
+    stop16("stop16_preset_full_covariance", &|c| {
+        c.model.dynamics.full_covariance = true
+    });
+    // `variance_floor = 0` leaves the hinge `max(0, 0 - std)` at 0: the floor is off.
+    stop16("stop16_preset_no_floor", &|c| {
+        c.loss.variance_floor = Some(0.0)
+    });
+    stop16("stop16_preset_no_floor_keypoints=32", &|c| {
+        c.loss.variance_floor = Some(0.0);
+        c.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
+            keypoints: 32,
+            hidden: 32,
+            polar: true,
+        };
+    });
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
     let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
