@@ -234,6 +234,7 @@ impl TrainConfig {
                 keypoints: 16,
                 hidden: 32,
                 polar: true,
+                with_cartesian: false,
             };
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.variance_floor = Some(1.0);

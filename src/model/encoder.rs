@@ -33,6 +33,12 @@ pub enum EncoderHead {
         hidden: usize,
         #[serde(default)]
         polar: bool,
+        /// With `polar = true`, also feed each keypoint's expected `(x, y)` to the next layer.
+        /// Polar coordinates about the centre resolve a link anchored there but not a point
+        /// that comes close to the centre (the reacher's fingertip with the wrist folded back
+        /// lies within a cell or two of it) or crosses the cut; `(x, y)` is smooth at both.
+        #[serde(default)]
+        with_cartesian: bool,
     },
 }
 
@@ -75,6 +81,7 @@ impl EncoderConfig {
                 keypoints: 16,
                 hidden: 0,
                 polar: false,
+                with_cartesian: false,
             },
             keypoint_sharpness: 1.0,
             init_latent_std: None,
@@ -100,6 +107,14 @@ impl EncoderConfig {
             EncoderHead::Mlp { hidden: 0 } | EncoderHead::SoftArgmax { keypoints: 0, .. } => {
                 Err(Error::config("model.encoder.head", "size must be positive"))
             }
+            EncoderHead::SoftArgmax {
+                polar: false,
+                with_cartesian: true,
+                ..
+            } => Err(Error::config(
+                "model.encoder.head.with_cartesian",
+                "adds (x, y) to polar keypoints; it needs polar = true",
+            )),
             _ => Ok(()),
         }
     }
@@ -126,12 +141,14 @@ impl EncoderConfig {
                 keypoints,
                 hidden,
                 polar,
+                with_cartesian,
             } => {
+                let features = if polar && with_cartesian { 4 } else { 2 } * keypoints;
                 let (hidden_layer, out_inputs) = if hidden == 0 {
-                    (None, 2 * keypoints)
+                    (None, features)
                 } else {
                     (
-                        Some(LinearConfig::new(2 * keypoints, hidden).init(device)),
+                        Some(LinearConfig::new(features, hidden).init(device)),
                         hidden,
                     )
                 };
@@ -306,15 +323,25 @@ impl Encoder {
         // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
         // angle and radius of the cells about the image centre.
         let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
-        let (grid_a, grid_b) = match &head.polar_axis {
-            Some(axis) => polar_grid(grid_x, grid_y, axis.val()),
-            None => (grid_x, grid_y),
+        let mut grids = match &head.polar_axis {
+            Some(axis) => {
+                let (angle, radius) = polar_grid(grid_x.clone(), grid_y.clone(), axis.val());
+                vec![angle, radius]
+            }
+            None => vec![grid_x.clone(), grid_y.clone()],
         };
-        let coordinates = vec![
-            (attention.clone() * grid_a).sum_dim(2), // [n, K, 1]
-            (attention * grid_b).sum_dim(2),         // [n, K, 1]
-        ];
-        let keypoints = Tensor::cat(coordinates, 1).reshape([n, 2 * k]); // [n, 2K]
+        // Polar keypoints followed by their `(x, y)` as well (`with_cartesian`): the first
+        // layer then takes 4 numbers per keypoint.
+        let first = head.hidden.as_ref().unwrap_or(&head.out);
+        if head.polar_axis.is_some() && first.weight.val().dims()[0] == 4 * k {
+            grids.extend([grid_x, grid_y]);
+        }
+        let features = grids.len() * k;
+        let coordinates = grids
+            .into_iter()
+            .map(|grid| (attention.clone() * grid).sum_dim(2)) // [n, K, 1] each
+            .collect();
+        let keypoints = Tensor::cat(coordinates, 1).reshape([n, features]); // [n, 2K or 4K]
         match &head.hidden {
             Some(hidden) => head.out.forward(tanh(hidden.forward(keypoints))), // [n, du]
             None => head.out.forward(keypoints),                               // [n, du]
@@ -427,11 +454,26 @@ mod tests {
                 keypoints: 4,
                 hidden: 0,
                 polar: false,
+                with_cartesian: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 8,
                 polar: true,
+                with_cartesian: false,
+            },
+            // Polar keypoints and their (x, y): 16 inputs to the tanh layer or the output.
+            EncoderHead::SoftArgmax {
+                keypoints: 4,
+                hidden: 8,
+                polar: true,
+                with_cartesian: true,
+            },
+            EncoderHead::SoftArgmax {
+                keypoints: 4,
+                hidden: 0,
+                polar: true,
+                with_cartesian: true,
             },
             EncoderHead::Mlp { hidden: 8 },
         ] {
@@ -454,6 +496,26 @@ mod tests {
         }
     }
 
+    #[test]
+    fn cartesian_features_need_the_polar_head() {
+        let mut config = EncoderConfig::new(2);
+        config.head = EncoderHead::SoftArgmax {
+            keypoints: 4,
+            hidden: 8,
+            polar: false,
+            with_cartesian: true,
+        };
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("with_cartesian"), "{err}");
+        config.head = EncoderHead::SoftArgmax {
+            keypoints: 4,
+            hidden: 8,
+            polar: true,
+            with_cartesian: true,
+        };
+        assert!(config.validate().is_ok());
+    }
+
     /// The polar head's cut must fall in the sector the reacher's shoulder cannot reach (q0
     /// beyond +-160 degrees, to the image's left), so the angle of the upper arm about the
     /// centre is continuous and monotone over the whole joint range.
@@ -466,6 +528,7 @@ mod tests {
                 keypoints: 4,
                 hidden: 0,
                 polar: true,
+                with_cartesian: false,
             },
             ..EncoderConfig::new(2)
         };

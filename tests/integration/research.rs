@@ -273,6 +273,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         keypoints: 16,
         hidden: 32,
         polar: false,
+        with_cartesian: false,
     };
     assert_eq!(undone, stop13_design);
     let stop14 = |name: &str| {
@@ -294,6 +295,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         keypoints: 16,
         hidden: 0,
         polar: true,
+        with_cartesian: false,
     };
     assert_eq!(expected, cell);
     // The new preset is the stop-13 design plus the polar head, the action response and the
@@ -309,6 +311,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         keypoints: 16,
         hidden: 32,
         polar: true,
+        with_cartesian: false,
     };
     assert_eq!(expected, new_design);
     // Stop 16: each cell is the preset plus the one change its name says.
@@ -340,6 +343,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             keypoints: 32,
             hidden: 32,
             polar: true,
+            with_cartesian: false,
         };
     });
     // Fetch: the `action-response` cells are the presets of both latent methods, and the

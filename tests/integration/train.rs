@@ -38,6 +38,7 @@ fn tiny_config(steps: u64, checkpoint_every: u64) -> TrainConfig {
         keypoints: 8,
         hidden: 0,
         polar: false,
+        with_cartesian: false,
     };
     config.model.dynamics.hidden = 32;
     // The procl preset searches the latent orientation every 50 steps, which must divide
