@@ -346,6 +346,15 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             with_cartesian: false,
         };
     });
+    stop16("stop16_preset_lambda_r=1", &|c| c.loss.lambda_r = 1.0);
+    stop16("stop16_preset_with_cartesian", &|c| {
+        c.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
+            keypoints: 16,
+            hidden: 32,
+            polar: true,
+            with_cartesian: true,
+        };
+    });
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
     let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
