@@ -4,6 +4,8 @@ use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::{relu, softmax, tanh};
+use burn::tensor::module::interpolate;
+use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::envs::{FRAME_BYTES, FRAME_PX};
@@ -65,10 +67,20 @@ pub struct EncoderConfig {
     /// that sets it).
     #[serde(default)]
     pub init_latent_std: Option<f64>,
+    /// Soft-argmax heads: upsample the keypoint feature maps bilinearly by this factor before
+    /// the attention (1: the trunk's 16x16 cells). The attention then averages over finer cells,
+    /// which matters for polar keypoints near the centre, where one of the 16x16 cells spans up
+    /// to 90 degrees of angle.
+    #[serde(default = "default_keypoint_upsample")]
+    pub keypoint_upsample: usize,
 }
 
 fn default_sharpness() -> f64 {
     1.0
+}
+
+fn default_keypoint_upsample() -> usize {
+    1
 }
 
 impl EncoderConfig {
@@ -85,10 +97,17 @@ impl EncoderConfig {
             },
             keypoint_sharpness: 1.0,
             init_latent_std: None,
+            keypoint_upsample: default_keypoint_upsample(),
         }
     }
 
     pub(crate) fn validate(&self) -> Result<()> {
+        if !(1..=4).contains(&self.keypoint_upsample) {
+            return Err(Error::config(
+                "model.encoder.keypoint_upsample",
+                format!("{} must be 1, 2, 3 or 4", self.keypoint_upsample),
+            ));
+        }
         if self.latent_dim == 0 || self.trunk_channels.contains(&0) {
             return Err(Error::config(
                 "model.encoder",
@@ -161,6 +180,7 @@ impl EncoderConfig {
                             device,
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
+                        upsample: self.keypoint_upsample,
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
                         // Cut opposite +x until [`Encoder::place_polar_cut`] sees the data.
@@ -197,6 +217,8 @@ pub struct MlpHead {
 #[derive(Module, Debug)]
 pub struct KeypointHead {
     features: Conv2d,
+    /// Bilinear upsampling factor of the feature maps (1: none).
+    upsample: usize,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -317,6 +339,16 @@ impl Encoder {
             .as_ref()
             .expect("encoder has one head by construction");
         let maps = head.features.forward(x); // [n, K, 16, 16]
+        let maps = if head.upsample > 1 {
+            let [_, _, rows, cols] = maps.dims();
+            let size = [rows * head.upsample, cols * head.upsample];
+            let options = InterpolateOptions::new(InterpolateMode::Bilinear)
+                .with_output_size(size)
+                .with_align_corners(false);
+            interpolate(maps, options) // [n, K, 16 u, 16 u]
+        } else {
+            maps
+        };
         let [n, k, rows, cols] = maps.dims();
         let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
         let attention = softmax(maps.reshape([n, k, rows * cols]) * sharpness, 2); // [n, K, 256]
@@ -494,6 +526,43 @@ mod tests {
                 assert!((std - 2.5).abs() < 1e-3, "{head:?} dim {dim}: std {std}");
             }
         }
+    }
+
+    #[test]
+    fn upsampled_keypoints_attend_over_finer_cells() {
+        let device = cpu_device();
+        let mut config = EncoderConfig {
+            trunk_channels: [4, 4],
+            head: EncoderHead::SoftArgmax {
+                keypoints: 4,
+                hidden: 8,
+                polar: true,
+                with_cartesian: false,
+            },
+            keypoint_sharpness: 30.0,
+            ..EncoderConfig::new(2)
+        };
+        config.keypoint_upsample = 0;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("keypoint_upsample"), "{err}");
+        config.keypoint_upsample = 2;
+        assert!(config.validate().is_ok());
+        let fine = reinit_params(config.init(&device), 3);
+        config.keypoint_upsample = 1;
+        let coarse = reinit_params(config.init(&device), 3);
+        // Same weights, different attention grids: finite encodings that differ.
+        let (h_fine, h_coarse) = (
+            to_vec(fine.forward(frames(&device))),
+            to_vec(coarse.forward(frames(&device))),
+        );
+        assert_eq!(h_fine.len(), 48);
+        assert!(h_fine.iter().all(|x| x.is_finite()));
+        assert!(
+            h_fine
+                .iter()
+                .zip(&h_coarse)
+                .any(|(a, b)| (a - b).abs() > 1e-6)
+        );
     }
 
     #[test]
