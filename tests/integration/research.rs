@@ -346,7 +346,11 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             with_cartesian: false,
         };
     });
+    stop16("stop16_preset_lambda_r=0.3", &|c| c.loss.lambda_r = 0.3);
     stop16("stop16_preset_lambda_r=1", &|c| c.loss.lambda_r = 1.0);
+    stop16("stop16_preset_keypoint_upsample=4", &|c| {
+        c.model.encoder.keypoint_upsample = 4
+    });
     stop16("stop16_preset_with_cartesian", &|c| {
         c.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
             keypoints: 16,
