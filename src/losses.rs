@@ -113,7 +113,7 @@ pub fn variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
 
 /// `mean_k max(0, floor - sqrt(lambda_k))` over the eigenvalues `lambda_k` of the batch
 /// covariance of `h [n, du]`: the variance hinge on the principal axes. The eigenvectors are
-/// computed outside the graph and held constant; the variance along a fixed unit vector `w`
+/// computed outside the graph (nalgebra) and held constant; the variance along a fixed unit vector `w`
 /// is `w^T C w`, whose gradient at an eigenvector is `w w^T`, the eigenvalue's own gradient, so
 /// this is the exact gradient of the hinge on the eigenvalues.
 pub fn principal_variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
@@ -127,54 +127,24 @@ pub fn principal_variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
     variance_hinge(centred.matmul(axes), floor)
 }
 
-/// The eigenvectors of the symmetric `du x du` matrix `a` (row-major) as the columns of a
-/// row-major matrix, by cyclic Jacobi rotations (`du` is the action dimension, 2 or 3, so a
-/// linear-algebra crate would be a large dependency for a few lines).
+/// The unit eigenvectors of the symmetric `du x du` matrix `a` (row-major), as the columns of
+/// a row-major matrix. A matrix with a non-finite entry (a diverged batch, whose loss is then
+/// non-finite and stops training) or one the iteration cannot diagonalise gets the identity.
 fn symmetric_eigenvectors(a: &[f64], du: usize) -> Vec<f64> {
-    let mut a = a.to_vec();
-    let mut v: Vec<f64> = (0..du * du)
-        .map(|k| if k / du == k % du { 1.0 } else { 0.0 })
-        .collect();
-    for _sweep in 0..50 {
-        let off: f64 = (0..du)
-            .flat_map(|i| (0..du).filter(move |&j| j != i).map(move |j| (i, j)))
-            .map(|(i, j)| a[i * du + j].powi(2))
-            .sum();
-        let scale: f64 = a.iter().map(|x| x * x).sum();
-        if off <= 1e-24 * scale.max(f64::MIN_POSITIVE) {
-            break;
-        }
-        for p in 0..du {
-            for q in p + 1..du {
-                let apq = a[p * du + q];
-                if apq == 0.0 {
-                    continue;
-                }
-                // The rotation in the (p, q) plane that zeroes a[p][q] (Golub & Van Loan 8.5).
-                let theta = (a[q * du + q] - a[p * du + p]) / (2.0 * apq);
-                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-                let t = if theta == 0.0 { 1.0 } else { t };
-                let c = 1.0 / (t * t + 1.0).sqrt();
-                let s = t * c;
-                for k in 0..du {
-                    let (akp, akq) = (a[k * du + p], a[k * du + q]);
-                    a[k * du + p] = c * akp - s * akq;
-                    a[k * du + q] = s * akp + c * akq;
-                }
-                for k in 0..du {
-                    let (apk, aqk) = (a[p * du + k], a[q * du + k]);
-                    a[p * du + k] = c * apk - s * aqk;
-                    a[q * du + k] = s * apk + c * aqk;
-                }
-                for k in 0..du {
-                    let (vkp, vkq) = (v[k * du + p], v[k * du + q]);
-                    v[k * du + p] = c * vkp - s * vkq;
-                    v[k * du + q] = s * vkp + c * vkq;
-                }
-            }
-        }
+    let identity = || {
+        (0..du * du)
+            .map(|k| f64::from(u8::from(k / du == k % du)))
+            .collect()
+    };
+    if !a.iter().all(|x| x.is_finite()) {
+        return identity();
     }
-    v
+    match nalgebra::DMatrix::from_row_slice(du, du, a).try_symmetric_eigen(f64::EPSILON, 1000) {
+        Some(eigen) => (0..du * du)
+            .map(|k| eigen.eigenvectors[(k / du, k % du)])
+            .collect(),
+        None => identity(),
+    }
 }
 
 /// `mean_{i != j} corr(h_i, h_j)^2` over the columns of `h [n, du]` (0 for du = 1).
@@ -810,7 +780,7 @@ mod tests {
     }
 
     #[test]
-    fn jacobi_diagonalises_a_symmetric_matrix() {
+    fn symmetric_eigenvectors_are_unit_eigenvector_columns() {
         // [[2, 1, 0], [1, 2, 0], [0, 0, 5]]: eigenvalues 1, 3, 5 with (1, -1, 0) / sqrt 2 ...
         let a = [2.0, 1.0, 0.0, 1.0, 2.0, 0.0, 0.0, 0.0, 5.0];
         let v = symmetric_eigenvectors(&a, 3);
@@ -828,6 +798,9 @@ mod tests {
             }
             lambdas.push(lambda);
         }
+        // A diverged batch gets the identity rather than an endless iteration.
+        let nan = symmetric_eigenvectors(&[f64::NAN, 0.0, 0.0, 1.0], 2);
+        assert_eq!(nan, [1.0, 0.0, 0.0, 1.0]);
         lambdas.sort_by(f64::total_cmp);
         for (got, want) in lambdas.iter().zip([1.0, 3.0, 5.0]) {
             assert!((got - want).abs() < 1e-10, "{lambdas:?}");
