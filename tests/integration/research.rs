@@ -351,6 +351,9 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     stop16("stop16_preset_keypoint_upsample=4", &|c| {
         c.model.encoder.keypoint_upsample = 4
     });
+    stop16("stop16_preset_keypoint_upsample=2", &|c| {
+        c.model.encoder.keypoint_upsample = 2
+    });
     stop16("stop16_preset_with_cartesian", &|c| {
         c.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
             keypoints: 16,
