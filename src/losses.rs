@@ -131,20 +131,15 @@ pub fn principal_variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
 /// a row-major matrix. A matrix with a non-finite entry (a diverged batch, whose loss is then
 /// non-finite and stops training) or one the iteration cannot diagonalise gets the identity.
 fn symmetric_eigenvectors(a: &[f64], du: usize) -> Vec<f64> {
-    let identity = || {
-        (0..du * du)
-            .map(|k| f64::from(u8::from(k / du == k % du)))
-            .collect()
-    };
-    if !a.iter().all(|x| x.is_finite()) {
-        return identity();
-    }
-    match nalgebra::DMatrix::from_row_slice(du, du, a).try_symmetric_eigen(f64::EPSILON, 1000) {
-        Some(eigen) => (0..du * du)
-            .map(|k| eigen.eigenvectors[(k / du, k % du)])
-            .collect(),
-        None => identity(),
-    }
+    let vectors = a
+        .iter()
+        .all(|x| x.is_finite())
+        .then(|| {
+            nalgebra::DMatrix::from_row_slice(du, du, a).try_symmetric_eigen(f64::EPSILON, 1000)
+        })
+        .flatten()
+        .map_or_else(|| nalgebra::DMatrix::identity(du, du), |e| e.eigenvectors);
+    (0..du * du).map(|k| vectors[(k / du, k % du)]).collect()
 }
 
 /// `mean_{i != j} corr(h_i, h_j)^2` over the columns of `h [n, du]` (0 for du = 1).
@@ -158,11 +153,8 @@ pub fn correlation_penalty(h: Tensor<2>) -> Tensor<1> {
     let std = batch_std(h.clone());
     let standardised = (h - mean) / std; // [n, du]
     let correlation = standardised.clone().transpose().matmul(standardised) / n as f64; // [du, du]
-    let off_diagonal: Vec<f32> = (0..du * du)
-        .map(|k| if k / du == k % du { 0.0 } else { 1.0 })
-        .collect();
-    let mask = Tensor::<2>::from_data(TensorData::new(off_diagonal, [du, du]), &h_device);
-    (correlation.powi_scalar(2) * mask).sum() / (du * (du - 1)) as f64
+    let off_diagonal = Tensor::<2>::ones([du, du], &h_device) - Tensor::eye(du, &h_device);
+    (correlation.powi_scalar(2) * off_diagonal).sum() / (du * (du - 1)) as f64
 }
 
 /// The factor `c / std(h_t)` (`[1, du]`, gradient through the std) that the Lyapunov risk
@@ -305,10 +297,7 @@ pub fn consistency_loss(log_density: Tensor<2>) -> Tensor<1> {
 /// The diagonal of a square `[n, n]` matrix as `[n]`.
 fn diagonal(matrix: Tensor<2>) -> Tensor<1> {
     let n = matrix.dims()[0];
-    let eye: Vec<f32> = (0..n * n)
-        .map(|k| if k / n == k % n { 1.0 } else { 0.0 })
-        .collect();
-    let eye = Tensor::from_data(TensorData::new(eye, [n, n]), &matrix.device());
+    let eye = Tensor::eye(n, &matrix.device());
     (matrix * eye).sum_dim(1).reshape([n])
 }
 

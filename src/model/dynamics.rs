@@ -171,18 +171,9 @@ impl Dynamics {
 
     /// The strictly lower triangular part of the precision factor, `[2 du, 2 du]`, if any.
     pub fn precision_off_diagonal(&self) -> Option<Tensor<2>> {
-        self.precision_lower.as_ref().map(|lower| {
-            let value = lower.val();
-            let d = value.dims()[0];
-            let mask: Vec<f32> = (0..d * d)
-                .map(|k| if k % d < k / d { 1.0 } else { 0.0 })
-                .collect();
-            let mask = Tensor::<2>::from_data(
-                burn::tensor::TensorData::new(mask, [d, d]),
-                &value.device(),
-            );
-            value * mask
-        })
+        self.precision_lower
+            .as_ref()
+            .map(|lower| lower.val().tril(-1))
     }
 
     /// `b` of [`DynamicsInput::ConstantDiagonal`] as a row `[1, du]`.
@@ -264,6 +255,29 @@ mod tests {
             TensorData::new(values.to_vec(), [values.len() / 2, 2]),
             device,
         )
+    }
+
+    #[test]
+    fn precision_factor_uses_only_the_strict_lower_part() {
+        let device = crate::model::cpu_device();
+        let config = DynamicsConfig {
+            full_covariance: true,
+            ..DynamicsConfig::new(1)
+        };
+        let mut dynamics = config.init(&device);
+        assert_eq!(
+            crate::model::to_vec(dynamics.precision_off_diagonal().expect("full covariance")),
+            [0.0; 4]
+        );
+        dynamics.precision_lower = Some(Param::from_tensor(Tensor::ones([2, 2], &device)));
+        let lower = dynamics.precision_off_diagonal().expect("full covariance");
+        assert_eq!(crate::model::to_vec(lower), [0.0, 0.0, 1.0, 0.0]);
+        assert!(
+            DynamicsConfig::new(1)
+                .init(&device)
+                .precision_off_diagonal()
+                .is_none()
+        );
     }
 
     #[test]

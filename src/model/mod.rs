@@ -132,11 +132,7 @@ pub(crate) const LATENT_TRANSFORM: &str = "latent_transform";
 
 /// A fresh orientation `Q = I` (du x du), excluded from training.
 fn transform_param(du: usize, device: &Device) -> burn::module::Param<Tensor<2>> {
-    let eye: Vec<f32> = (0..du * du)
-        .map(|k| if k / du == k % du { 1.0 } else { 0.0 })
-        .collect();
-    burn::module::Param::from_tensor(Tensor::from_data(TensorData::new(eye, [du, du]), device))
-        .set_require_grad(false)
+    burn::module::Param::from_tensor(Tensor::eye(du, device)).set_require_grad(false)
 }
 
 impl ProclModel {
