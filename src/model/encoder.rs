@@ -181,6 +181,7 @@ impl EncoderConfig {
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
                         upsample: self.keypoint_upsample,
+                        with_cartesian: polar && with_cartesian,
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
                         // Cut opposite +x until [`Encoder::place_polar_cut`] sees the data.
@@ -219,6 +220,8 @@ pub struct KeypointHead {
     features: Conv2d,
     /// Bilinear upsampling factor of the feature maps (1: none).
     upsample: usize,
+    /// Polar keypoints followed by their `(x, y)` as well: 4 numbers per keypoint.
+    with_cartesian: bool,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -362,10 +365,7 @@ impl Encoder {
             }
             None => vec![grid_x.clone(), grid_y.clone()],
         };
-        // Polar keypoints followed by their `(x, y)` as well (`with_cartesian`): the first
-        // layer then takes 4 numbers per keypoint.
-        let first = head.hidden.as_ref().unwrap_or(&head.out);
-        if head.polar_axis.is_some() && first.weight.val().dims()[0] == 4 * k {
+        if head.with_cartesian {
             grids.extend([grid_x, grid_y]);
         }
         let features = grids.len() * k;
