@@ -219,6 +219,17 @@ loss = { lambda_r = 0.0 }
     );
 }
 
+/// The soft-argmax head with `keypoints`, a tanh layer of `hidden` (0: none), Cartesian or
+/// polar coordinates, and no `(x, y)` beside polar ones.
+fn keypoint_head(keypoints: usize, hidden: usize, polar: bool) -> procl::model::EncoderHead {
+    procl::model::EncoderHead::SoftArgmax {
+        keypoints,
+        hidden,
+        polar,
+        with_cartesian: false,
+    }
+}
+
 #[test]
 fn shipped_ablation_grids_resolve_for_their_envs() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("ablation");
@@ -269,12 +280,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     undone.orientation_criterion = procl::orientation::OrientationCriterion::Risk;
     undone.loss.risk_latent_std = None;
     (undone.loss.kp, undone.loss.kd, undone.loss.lambda_r) = (10.0, 2.0, 10.0);
-    undone.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
-        keypoints: 16,
-        hidden: 32,
-        polar: false,
-        with_cartesian: false,
-    };
+    undone.model.encoder.head = keypoint_head(16, 32, false);
     assert_eq!(undone, stop13_design);
     let stop14 = |name: &str| {
         let mut expected = stop13_design.clone();
@@ -291,12 +297,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let (mut expected, cell) = stop14("stop15_polar_action-response_risk_latent_std=0.1");
     expected.orientation_criterion = procl::orientation::OrientationCriterion::ActionResponse;
     expected.loss.risk_latent_std = Some(0.1);
-    expected.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
-        keypoints: 16,
-        hidden: 0,
-        polar: true,
-        with_cartesian: false,
-    };
+    expected.model.encoder.head = keypoint_head(16, 0, true);
     assert_eq!(expected, cell);
     // The new preset is the stop-13 design plus the polar head, the action response and the
     // gain-matched standardised risk.
@@ -307,12 +308,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     expected.loss.kp = 1.0;
     expected.loss.kd = 0.2;
     expected.loss.lambda_r = 0.1;
-    expected.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
-        keypoints: 16,
-        hidden: 32,
-        polar: true,
-        with_cartesian: false,
-    };
+    expected.model.encoder.head = keypoint_head(16, 32, true);
     assert_eq!(expected, new_design);
     // Stop 16: each cell is the preset plus the one change its name says.
     let stop16 = |name: &str, change: &dyn Fn(&mut TrainConfig)| {
@@ -339,12 +335,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     });
     stop16("stop16_preset_no_floor_keypoints=32", &|c| {
         c.loss.variance_floor = Some(0.0);
-        c.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
-            keypoints: 32,
-            hidden: 32,
-            polar: true,
-            with_cartesian: false,
-        };
+        c.model.encoder.head = keypoint_head(32, 32, true);
     });
     stop16("stop16_preset_lambda_r=0.3", &|c| c.loss.lambda_r = 0.3);
     stop16("stop16_preset_lambda_r=1", &|c| c.loss.lambda_r = 1.0);
