@@ -265,7 +265,7 @@ pub fn pairwise_gaussian_log_density(
     let m = mean.dims()[0];
     let inv_std = log_std.clone().neg().exp().reshape([1, 1, d]);
     let raw = x.reshape([n, 1, d]) - mean.reshape([1, m, d]); // [n, m, d]
-    let diff = raw.clone() * inv_std.clone();
+    let diff = raw.clone() * inv_std;
     // With a full covariance, `W d` where `W = diag(exp(-log_std)) + L` (`L` strictly lower):
     // the rows here are `d^T`, so add `d^T L^T`. Its determinant is still the diagonal's.
     let diff = match precision_lower {
