@@ -90,6 +90,7 @@ pub fn shrink_networks(config: &mut TrainConfig) {
         hidden: 0,
         polar: false,
         with_cartesian: false,
+        pairwise_angles: false,
     };
     if let Some(nvae) = config.nvae.as_mut() {
         nvae.trunk_channels = [8, 8];

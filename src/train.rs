@@ -235,6 +235,7 @@ impl TrainConfig {
                 hidden: 32,
                 polar: true,
                 with_cartesian: false,
+                pairwise_angles: false,
             };
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.variance_floor = Some(1.0);

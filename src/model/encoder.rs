@@ -6,7 +6,7 @@ use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::{relu, softmax, tanh};
 use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 use crate::error::{Error, Result};
@@ -41,6 +41,14 @@ pub enum EncoderHead {
         /// lies within a cell or two of it) or crosses the cut; `(x, y)` is smooth at both.
         #[serde(default)]
         with_cartesian: bool,
+        /// With `polar = true`, also feed the angle between every pair of keypoints, seen from
+        /// the centre (from their expected `(x, y)`). A keypoint's own angle jumps where it
+        /// crosses the cut; the angle between two keypoints jumps only where it reaches
+        /// 180 degrees. The reacher's links are equally long, so the angle between the wrist
+        /// and the fingertip is exactly half the wrist angle at every shoulder angle, while
+        /// the fingertip's own angle (shoulder + wrist / 2) sweeps more than a full turn.
+        #[serde(default)]
+        pairwise_angles: bool,
     },
 }
 
@@ -94,6 +102,7 @@ impl EncoderConfig {
                 hidden: 0,
                 polar: false,
                 with_cartesian: false,
+                pairwise_angles: false,
             },
             keypoint_sharpness: 1.0,
             init_latent_std: None,
@@ -134,6 +143,14 @@ impl EncoderConfig {
                 "model.encoder.head.with_cartesian",
                 "adds (x, y) to polar keypoints; it needs polar = true",
             )),
+            EncoderHead::SoftArgmax {
+                polar: false,
+                pairwise_angles: true,
+                ..
+            } => Err(Error::config(
+                "model.encoder.head.pairwise_angles",
+                "adds the angles between polar keypoints; it needs polar = true",
+            )),
             _ => Ok(()),
         }
     }
@@ -161,8 +178,15 @@ impl EncoderConfig {
                 hidden,
                 polar,
                 with_cartesian,
+                pairwise_angles,
             } => {
-                let features = if polar && with_cartesian { 4 } else { 2 } * keypoints;
+                let pairwise_angles = polar && pairwise_angles;
+                let features = if polar && with_cartesian { 4 } else { 2 } * keypoints
+                    + if pairwise_angles {
+                        keypoints * (keypoints - 1) / 2
+                    } else {
+                        0
+                    };
                 let (hidden_layer, out_inputs) = if hidden == 0 {
                     (None, features)
                 } else {
@@ -182,6 +206,7 @@ impl EncoderConfig {
                         features: conv(c2, keypoints, 1, 1, 0),
                         upsample: self.keypoint_upsample,
                         with_cartesian: polar && with_cartesian,
+                        pairwise_angles,
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
                         // Cut opposite +x until [`Encoder::place_polar_cut`] sees the data.
@@ -222,6 +247,8 @@ pub struct KeypointHead {
     upsample: usize,
     /// Polar keypoints followed by their `(x, y)` as well: 4 numbers per keypoint.
     with_cartesian: bool,
+    /// Polar keypoints followed by the angle between each pair of them: `K (K - 1) / 2` more.
+    pairwise_angles: bool,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -365,15 +392,20 @@ impl Encoder {
             }
             None => vec![grid_x.clone(), grid_y.clone()],
         };
+        let expected = |grid: Tensor<3>| (attention.clone() * grid).sum_dim(2); // [n, K, 1]
+        let pairwise = head
+            .pairwise_angles
+            .then(|| pairwise_angles(expected(grid_x.clone()), expected(grid_y.clone())));
         if head.with_cartesian {
             grids.extend([grid_x, grid_y]);
         }
         let features = grids.len() * k;
-        let coordinates = grids
-            .into_iter()
-            .map(|grid| (attention.clone() * grid).sum_dim(2)) // [n, K, 1] each
-            .collect();
+        let coordinates = grids.into_iter().map(expected).collect();
         let keypoints = Tensor::cat(coordinates, 1).reshape([n, features]); // [n, 2K or 4K]
+        let keypoints = match pairwise {
+            Some(angles) => Tensor::cat(vec![keypoints, angles], 1), // [n, 2K + K (K - 1) / 2]
+            None => keypoints,
+        };
         match &head.hidden {
             Some(hidden) => head.out.forward(tanh(hidden.forward(keypoints))), // [n, du]
             None => head.out.forward(keypoints),                               // [n, du]
@@ -395,6 +427,28 @@ fn polar_grid(x: Tensor<3>, y: Tensor<3>, axis: Tensor<1>) -> (Tensor<3>, Tensor
     let r_squared = along.clone().powi_scalar(2) + across.clone().powi_scalar(2);
     let fade = r_squared.clone() / (r_squared.clone() + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
     (across.atan2(along) * fade, r_squared.sqrt())
+}
+
+/// Expected keypoint positions `x, y` (`[n, K, 1]` each, about the image centre) -> the angle
+/// from keypoint `i` to keypoint `j` about the centre for every pair `i < j` (`[n, K (K - 1) / 2]`,
+/// in `(-pi, pi]`), faded to 0 as either keypoint nears the centre (see [`polar_grid`]).
+fn pairwise_angles(x: Tensor<3>, y: Tensor<3>) -> Tensor<2> {
+    let [n, k, _] = x.dims();
+    let (x_j, y_j) = (x.clone().reshape([n, 1, k]), y.clone().reshape([n, 1, k]));
+    let cross = x.clone() * y_j.clone() - y.clone() * x_j.clone(); // [n, K, K]
+    let dot = x.clone() * x_j.clone() + y.clone() * y_j.clone();
+    let r_squared = x.powi_scalar(2) + y.powi_scalar(2); // [n, K, 1]
+    let fade = r_squared.clone() / (r_squared + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
+    let fade_pair = fade.clone() * fade.reshape([n, 1, k]);
+    // atan2's gradient is 0/0 at the origin; the offset keeps it finite there, where the fade
+    // is 0 anyway.
+    let angle = cross.atan2(dot + 1e-12) * fade_pair; // [n, K, K]
+    let upper: Vec<i64> = (0..k)
+        .flat_map(|i| (i + 1..k).map(move |j| (i * k + j) as i64))
+        .collect();
+    let pairs = upper.len();
+    let index = Tensor::<1, Int>::from_data(TensorData::new(upper, [pairs]), &angle.device());
+    angle.reshape([n, k * k]).select(1, index)
 }
 
 /// The direction (unit vector in image coordinates about the centre) in which `frames` (RGB
@@ -487,12 +541,14 @@ mod tests {
                 hidden: 0,
                 polar: false,
                 with_cartesian: false,
+                pairwise_angles: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 8,
                 polar: true,
                 with_cartesian: false,
+                pairwise_angles: false,
             },
             // Polar keypoints and their (x, y): 16 inputs to the tanh layer or the output.
             EncoderHead::SoftArgmax {
@@ -500,12 +556,14 @@ mod tests {
                 hidden: 8,
                 polar: true,
                 with_cartesian: true,
+                pairwise_angles: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 0,
                 polar: true,
                 with_cartesian: true,
+                pairwise_angles: false,
             },
             EncoderHead::Mlp { hidden: 8 },
         ] {
@@ -538,6 +596,7 @@ mod tests {
                 hidden: 8,
                 polar: true,
                 with_cartesian: false,
+                pairwise_angles: false,
             },
             keypoint_sharpness: 30.0,
             ..EncoderConfig::new(2)
@@ -573,6 +632,7 @@ mod tests {
             hidden: 8,
             polar: false,
             with_cartesian: true,
+            pairwise_angles: false,
         };
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("with_cartesian"), "{err}");
@@ -581,6 +641,7 @@ mod tests {
             hidden: 8,
             polar: true,
             with_cartesian: true,
+            pairwise_angles: false,
         };
         assert!(config.validate().is_ok());
     }
@@ -598,6 +659,7 @@ mod tests {
                 hidden: 0,
                 polar: true,
                 with_cartesian: false,
+                pairwise_angles: false,
             },
             ..EncoderConfig::new(2)
         };
@@ -664,6 +726,73 @@ mod tests {
         let angle = to_vec(angle);
         assert!((angle[0] + pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
         assert!((angle[2] - pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
+    }
+
+    #[test]
+    fn pairwise_angles_are_the_angles_between_keypoints_about_the_centre() {
+        let device = cpu_device().autodiff();
+        let t3 = |v: Vec<f32>| Tensor::<3>::from_data(TensorData::new(v, [1, 4, 1]), &device);
+        // Keypoints at radius 1 along +x, +y and -x, and one at the centre.
+        let x = t3(vec![1.0, 0.0, -1.0, 0.0]).require_grad();
+        let y = t3(vec![0.0, 1.0, 0.0, 0.0]).require_grad();
+        let angles = pairwise_angles(x.clone(), y.clone());
+        assert_eq!(angles.dims(), [1, 6]);
+        let fade = 1.0 / (1.0 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
+        let pi = std::f32::consts::PI;
+        // Pairs (0,1) (0,2) (0,3) (1,2) (1,3) (2,3): a quarter turn, a half turn (on the jump,
+        // atan2 gives +pi), a quarter turn; any pair with the centre is 0.
+        let want = [pi / 2.0, pi, 0.0, pi / 2.0, 0.0, 0.0].map(|a| a * fade * fade);
+        let got = to_vec(angles.clone());
+        for (g, w) in got.iter().zip(want) {
+            assert!((g - w).abs() < 1e-5, "{got:?}");
+        }
+        // Turning the scene turns no angle between keypoints.
+        let turn = 0.7f32;
+        let (c, s) = (turn.cos(), turn.sin());
+        let (xs, ys) = ([1.0f32, 0.0, -1.0, 0.0], [0.0f32, 1.0, 0.0, 0.0]);
+        let xr = t3(xs.iter().zip(ys).map(|(x, y)| c * x - s * y).collect());
+        let yr = t3(xs.iter().zip(ys).map(|(x, y)| s * x + c * y).collect());
+        let turned = to_vec(pairwise_angles(xr, yr));
+        // Pair (0,2) sits on the jump, where rounding picks either side.
+        for (i, (g, w)) in turned.iter().zip(&got).enumerate().filter(|(i, _)| *i != 1) {
+            assert!((g - w).abs() < 1e-4, "pair {i}: {turned:?}");
+        }
+        // The keypoint at the centre gets a finite (zero) gradient.
+        let grads = angles.sum().backward();
+        let (gx, gy) = (
+            to_vec(x.grad(&grads).unwrap()),
+            to_vec(y.grad(&grads).unwrap()),
+        );
+        assert!(gx.iter().chain(&gy).all(|g| g.is_finite()), "{gx:?} {gy:?}");
+        assert_eq!((gx[3], gy[3]), (0.0, 0.0));
+    }
+
+    #[test]
+    fn pairwise_angles_need_the_polar_head_and_widen_its_input() {
+        let device = cpu_device();
+        let head = |polar, pairwise_angles| EncoderHead::SoftArgmax {
+            keypoints: 4,
+            hidden: 8,
+            polar,
+            with_cartesian: false,
+            pairwise_angles,
+        };
+        let mut config = EncoderConfig {
+            trunk_channels: [4, 4],
+            head: head(false, true),
+            ..EncoderConfig::new(2)
+        };
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("pairwise_angles"), "{err}");
+        config.head = head(true, true);
+        assert!(config.validate().is_ok());
+        let encoder = reinit_params(config.init(&device), 5);
+        // 4 angles, 4 radii and 6 pairs feed the tanh layer.
+        let hidden = encoder.keypoints.as_ref().and_then(|k| k.hidden.as_ref());
+        assert_eq!(hidden.map(|l| l.weight.dims()), Some([14, 8]));
+        let h = to_vec(encoder.forward(frames(&device)));
+        assert_eq!(h.len(), 48);
+        assert!(h.iter().all(|x| x.is_finite()), "{h:?}");
     }
 
     #[test]

@@ -227,6 +227,7 @@ fn keypoint_head(keypoints: usize, hidden: usize, polar: bool) -> procl::model::
         hidden,
         polar,
         with_cartesian: false,
+        pairwise_angles: false,
     }
 }
 
@@ -351,6 +352,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             hidden: 32,
             polar: true,
             with_cartesian: true,
+            pairwise_angles: false,
         };
     });
     // Fetch: the `action-response` cells are the presets of both latent methods, and the

@@ -39,6 +39,7 @@ fn tiny_config(steps: u64, checkpoint_every: u64) -> TrainConfig {
         hidden: 0,
         polar: false,
         with_cartesian: false,
+        pairwise_angles: false,
     };
     config.model.dynamics.hidden = 32;
     // The procl preset searches the latent orientation every 50 steps, which must divide
