@@ -325,7 +325,10 @@ impl TrainConfig {
                 ),
             ));
         }
+        // The action-response search measures the turn the gains have not (yet) fixed and
+        // turns the dynamics' input matrix with the latent; the risk search cannot see it.
         if self.orientation_search_every != 0
+            && self.orientation_criterion == OrientationCriterion::Risk
             && matches!(
                 self.model.dynamics.input,
                 DynamicsInput::ConstantDiagonal { .. }
@@ -333,8 +336,9 @@ impl TrainConfig {
         {
             return Err(Error::config(
                 "orientation_search_every",
-                "must be 0 with model.dynamics.input constant-diagonal (its positive input \
-                 gains fix the orientation; a search could only turn the latent against them)",
+                "must be 0 with model.dynamics.input constant-diagonal and the risk criterion \
+                 (its positive input gains fix the orientation; a risk search could only turn \
+                 the latent against them)",
             ));
         }
         if self.method == Method::Pc3 && self.loss.lambda_r != 0.0 {
@@ -1020,6 +1024,10 @@ mod tests {
         assert!(err.contains("orientation_tolerance"), "{err}");
         let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
         config.model.dynamics.input = DynamicsInput::ConstantDiagonal { initial_gain: 1.0 };
+        // The preset's action-response search may turn the gains with the latent...
+        assert!(config.validate().is_ok());
+        // ...the risk search may not.
+        config.orientation_criterion = OrientationCriterion::Risk;
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("orientation_search_every"), "{err}");
         config.orientation_search_every = 0;
