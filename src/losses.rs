@@ -79,6 +79,15 @@ pub struct LossConfig {
     /// band. Independent random joints in the data make uncorrelated latent axes joint-like.
     #[serde(default)]
     pub decorrelation_weight: f64,
+    /// Flat-chart term: adds `action_response_weight * (1 - R^2)`, where `R^2` is the fraction
+    /// of the batch's latent acceleration `h_{t+1} - 2 h_t + h_{t-1}` that one linear map of
+    /// `u_t` explains (least squares with an intercept; 0: off, the paper). Random control draws
+    /// `u_t` independently of the state, so the map is the batch's mean action response. In
+    /// joint-like coordinates the response `J M(q)^-1` barely turns from state to state; on a
+    /// latent curled round an arc it turns with the arc and one map explains little. Invariant
+    /// to the latent's rotation and overall scale.
+    #[serde(default)]
+    pub action_response_weight: f64,
 }
 
 /// The axes the variance floor holds (see [`LossConfig::variance_axes`]).
@@ -157,6 +166,38 @@ pub fn correlation_penalty(h: Tensor<2>) -> Tensor<1> {
     (correlation.powi_scalar(2) * off_diagonal).sum() / (du * (du - 1)) as f64
 }
 
+/// `1 - R^2` of the least-squares fit `a ~ B u + c` over the batch, with `a = h_next - 2 h_now
+/// + h_prev` (`[n, d]` each) and `u [n, du]`: the share of the latent acceleration that no single
+/// linear map of the action explains (see [`LossConfig::action_response_weight`]). With `a` and
+/// `u` centred, the explained part is `tr(a^T P a)` with `P = u (u^T u)^-1 u^T`; `(u^T u)^-1` is
+/// data, computed on the host (nalgebra). 0 when `u` is degenerate (no fit to judge).
+pub fn action_response_unexplained(
+    h_prev: Tensor<2>,
+    h_now: Tensor<2>,
+    h_next: Tensor<2>,
+    u: Tensor<2>,
+) -> Tensor<1> {
+    let [_, du] = u.dims();
+    let device = u.device();
+    let centre = |x: Tensor<2>| x.clone() - x.mean_dim(0);
+    let u = centre(u.detach());
+    let a = centre(h_next - h_now * 2.0 + h_prev); // [n, d]
+    let gram = crate::model::to_vec(u.clone().transpose().matmul(u.clone()));
+    let gram = nalgebra::DMatrix::from_iterator(du, du, gram.into_iter().map(f64::from));
+    let Some(gram_inverse) = gram
+        .try_inverse()
+        .filter(|m| m.iter().all(|x| x.is_finite()))
+    else {
+        return Tensor::zeros([1], &device);
+    };
+    let gram_inverse: Vec<f32> = gram_inverse.iter().map(|&x| x as f32).collect();
+    let gram_inverse = Tensor::<2>::from_data(TensorData::new(gram_inverse, [du, du]), &device);
+    let cross = u.transpose().matmul(a.clone()); // [du, d]
+    let explained = (gram_inverse.matmul(cross.clone()) * cross).sum();
+    let total = a.powi_scalar(2).sum().add_scalar(1e-12);
+    (explained / total).neg().add_scalar(1.0).reshape([1])
+}
+
 /// The factor `c / std(h_t)` (`[1, du]`, gradient through the std) that the Lyapunov risk
 /// multiplies every latent of a sample by under `loss.risk_latent_std = c`; `None` when off.
 pub(crate) fn risk_scale(config: &LossConfig, h_now: Tensor<2>) -> Option<Tensor<2>> {
@@ -197,6 +238,7 @@ impl Default for LossConfig {
             variance_axes: VarianceAxes::Coordinates,
             risk_latent_std: None,
             decorrelation_weight: 0.0,
+            action_response_weight: 0.0,
         }
     }
 }
@@ -218,6 +260,7 @@ impl LossConfig {
             ("loss.variance_weight", self.variance_weight),
             ("loss.variance_floor", self.variance_floor.unwrap_or(0.0)),
             ("loss.decorrelation_weight", self.decorrelation_weight),
+            ("loss.action_response_weight", self.action_response_weight),
         ];
         if let Some(c) = self.risk_latent_std
             && !(c.is_finite() && c > 0.0)
@@ -468,6 +511,9 @@ pub fn procl_loss(
         permutation,
     } = inputs;
     let h_now_for_variance = h_now.clone();
+    let action_response = (config.action_response_weight > 0.0).then(|| {
+        action_response_unexplained(h_prev.clone(), h_now.clone(), h_next.clone(), u.clone())
+    });
     let v_now = (h_now.clone() - h_prev) / dt;
     let h_next_noisy = h_next.clone() + latent_noise * config.latent_noise_std;
     let v_next_noisy = (h_next_noisy.clone() - h_now.clone()) / dt;
@@ -554,6 +600,9 @@ pub fn procl_loss(
     }
     if config.decorrelation_weight > 0.0 {
         total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
+    }
+    if let Some(unexplained) = action_response {
+        total = total + unexplained * config.action_response_weight;
     }
     LossTerms {
         cpc,
@@ -864,6 +913,38 @@ mod tests {
             let got = f64::from(got[k]);
             assert!((got - want).abs() < 1e-3, "d/dh[{k}]: {got} vs {want}");
         }
+    }
+
+    #[test]
+    fn action_response_term_is_the_share_no_linear_map_of_u_explains() {
+        let device = cpu_device();
+        let zeros = t2(&[0.0; 8], 4, 2, &device);
+        let u = t2(&[1.0, -1.0, 1.0, -1.0], 4, 1, &device);
+        let unexplained = |a: Tensor<2>, u: Tensor<2>| {
+            scalar(action_response_unexplained(
+                zeros.clone(),
+                zeros.clone(),
+                a,
+                u,
+            ))
+        };
+        // a = h_next here. Column 0 is 2 u + w, column 1 is w, with w = (1, 1, -1, -1) orthogonal
+        // to u: the fit explains (u.a0)^2 / (u.u) = 64 / 4 = 16 of |a|^2 = 20 + 4 = 24.
+        let a = t2(&[3.0, 1.0, -1.0, 1.0, 1.0, -1.0, -3.0, -1.0], 4, 2, &device);
+        assert!((unexplained(a.clone(), u.clone()) - 1.0 / 3.0).abs() < 1e-5);
+        // Rotation and scale of the latent change nothing.
+        let (c, s) = (0.6f32, 0.8f32);
+        let turn = t2(&[3.0 * c, 3.0 * s, -3.0 * s, 3.0 * c], 2, 2, &device);
+        let turned = a.clone().matmul(turn);
+        assert!((unexplained(turned, u.clone()) - 1.0 / 3.0).abs() < 1e-5);
+        // A response linear in u (plus a constant) is all explained; one orthogonal to it not at all.
+        let linear = t2(&[2.5, -1.0, -1.5, 1.0, 2.5, -1.0, -1.5, 1.0], 4, 2, &device);
+        assert!(unexplained(linear, u.clone()).abs() < 1e-5);
+        let orthogonal = t2(&[1.0, 1.0, 1.0, 1.0, -1.0, -1.0, -1.0, -1.0], 4, 2, &device);
+        assert!((unexplained(orthogonal, u) - 1.0).abs() < 1e-5);
+        // A constant action has no fit to judge.
+        let constant = t2(&[0.3; 4], 4, 1, &device);
+        assert_eq!(unexplained(a, constant), 0.0);
     }
 
     #[test]
