@@ -311,42 +311,42 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     expected.loss.lambda_r = 0.1;
     expected.model.encoder.head = keypoint_head(16, 32, true);
     assert_eq!(expected, new_design);
-    // Stop 16: each cell is the preset plus the one change its name says.
-    let stop16 = |name: &str, change: &dyn Fn(&mut TrainConfig)| {
+    // Stops 16 and 17: each cell is the preset plus the one change its name says.
+    let preset_plus = |name: &str, change: &dyn Fn(&mut TrainConfig)| {
         let mut expected = new_design.clone();
         change(&mut expected);
         let (_, got) = configs.iter().find(|(n, _)| n == name).unwrap();
         assert_eq!(&expected, got, "{name}");
     };
-    stop16("stop16_preset_orientation_tolerance=0.8", &|c| {
+    preset_plus("stop16_preset_orientation_tolerance=0.8", &|c| {
         c.orientation_tolerance = 0.8
     });
-    stop16("stop16_preset_variance_axes=principal", &|c| {
+    preset_plus("stop16_preset_variance_axes=principal", &|c| {
         c.loss.variance_axes = procl::losses::VarianceAxes::Principal
     });
-    stop16("stop16_preset_batch_group=8x8", &|c| {
+    preset_plus("stop16_preset_batch_group=8x8", &|c| {
         (c.batch_group_size, c.batch_group_window) = (8, 8)
     });
-    stop16("stop16_preset_full_covariance", &|c| {
+    preset_plus("stop16_preset_full_covariance", &|c| {
         c.model.dynamics.full_covariance = true
     });
     // `variance_floor = 0` leaves the hinge `max(0, 0 - std)` at 0: the floor is off.
-    stop16("stop16_preset_no_floor", &|c| {
+    preset_plus("stop16_preset_no_floor", &|c| {
         c.loss.variance_floor = Some(0.0)
     });
-    stop16("stop16_preset_no_floor_keypoints=32", &|c| {
+    preset_plus("stop16_preset_no_floor_keypoints=32", &|c| {
         c.loss.variance_floor = Some(0.0);
         c.model.encoder.head = keypoint_head(32, 32, true);
     });
-    stop16("stop16_preset_lambda_r=0.3", &|c| c.loss.lambda_r = 0.3);
-    stop16("stop16_preset_lambda_r=1", &|c| c.loss.lambda_r = 1.0);
-    stop16("stop16_preset_keypoint_upsample=4", &|c| {
+    preset_plus("stop16_preset_lambda_r=0.3", &|c| c.loss.lambda_r = 0.3);
+    preset_plus("stop16_preset_lambda_r=1", &|c| c.loss.lambda_r = 1.0);
+    preset_plus("stop16_preset_keypoint_upsample=4", &|c| {
         c.model.encoder.keypoint_upsample = 4
     });
-    stop16("stop16_preset_keypoint_upsample=2", &|c| {
+    preset_plus("stop16_preset_keypoint_upsample=2", &|c| {
         c.model.encoder.keypoint_upsample = 2
     });
-    stop16("stop16_preset_with_cartesian", &|c| {
+    preset_plus("stop16_preset_with_cartesian", &|c| {
         c.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
             keypoints: 16,
             hidden: 32,
@@ -354,6 +354,60 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             with_cartesian: true,
             pairwise_angles: false,
         };
+    });
+    // The constant diagonal input's gains fix the orientation, so its cell turns the search off.
+    let pairwise = |hidden| procl::model::EncoderHead::SoftArgmax {
+        keypoints: 16,
+        hidden,
+        polar: true,
+        with_cartesian: false,
+        pairwise_angles: true,
+    };
+    preset_plus("stop17_preset_pairwise_angles", &|c| {
+        c.model.encoder.head = pairwise(32)
+    });
+    preset_plus("stop17_preset_pairwise_angles_linear", &|c| {
+        c.model.encoder.head = pairwise(0)
+    });
+    preset_plus("stop17_preset_constant_diagonal_input=50", &|c| {
+        c.orientation_search_every = 0;
+        c.model.dynamics.input =
+            procl::model::DynamicsInput::ConstantDiagonal { initial_gain: 50.0 };
+    });
+    preset_plus(
+        "stop17_preset_constant_diagonal_input=50_action-response",
+        &|c| {
+            c.model.dynamics.input =
+                procl::model::DynamicsInput::ConstantDiagonal { initial_gain: 50.0 }
+        },
+    );
+    preset_plus("stop17_preset_pairwise_angles_no_floor", &|c| {
+        c.model.encoder.head = pairwise(32);
+        c.loss.variance_floor = Some(0.0);
+    });
+    preset_plus("stop17_preset_action_response_weight=3", &|c| {
+        c.loss.action_response_weight = 3.0
+    });
+    preset_plus(
+        "stop17_preset_pairwise_angles_action_response_weight=3",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.loss.action_response_weight = 3.0;
+        },
+    );
+    preset_plus(
+        "stop17_preset_pairwise_angles_action_response_weight=30",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.loss.action_response_weight = 30.0;
+        },
+    );
+    preset_plus("stop17_preset_pairwise_angles_lambda_r=1", &|c| {
+        c.model.encoder.head = pairwise(32);
+        c.loss.lambda_r = 1.0;
+    });
+    preset_plus("stop17_preset_transition_init_std=0.02", &|c| {
+        c.model.dynamics.init_std = 0.02
     });
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
