@@ -952,9 +952,14 @@ pub fn config_from_table(
         toml::Value::try_from(method).map_err(|e| Error::config("method", e.to_string()))?,
     );
     merged.insert("env".into(), toml::Value::String(env.name().into()));
-    let config: TrainConfig = toml::Value::Table(merged)
-        .try_into()
-        .map_err(|e: toml::de::Error| Error::config("config", e.message().to_string()))?;
+    // The path to the offending value names the field (`model.dynamics.full_covariance`), not
+    // just the whole config.
+    let config: TrainConfig = serde_path_to_error::deserialize(toml::Value::Table(merged))
+        .map_err(|e| {
+            let field = e.path().to_string();
+            let field = if field == "." { "config".into() } else { field };
+            Error::config(field, e.into_inner().message().to_string())
+        })?;
     config.validate()?;
     Ok(config)
 }
@@ -1010,6 +1015,27 @@ mod tests {
         );
         let paper = TrainConfig::preset(Preset::Paper, Method::Procl, EnvKind::Fetch);
         assert_eq!(paper.orientation_search_every, 0);
+    }
+
+    #[test]
+    fn a_value_of_the_wrong_type_is_refused_by_its_path() {
+        for (text, field) in [
+            (
+                "[model.dynamics]\nfull_covariance = \"yes\"",
+                "model.dynamics.full_covariance",
+            ),
+            (
+                "[loss]\naction_response_weight = \"x\"",
+                "loss.action_response_weight",
+            ),
+            ("steps = -3", "steps"),
+        ] {
+            let table: toml::Table = text.parse().unwrap();
+            let err = config_from_table(table, EnvKind::Reacher, None)
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(&format!("`{field}`")), "{text}: {err}");
+        }
     }
 
     #[test]
