@@ -180,8 +180,9 @@ impl EncoderConfig {
                 with_cartesian,
                 pairwise_angles,
             } => {
+                let with_cartesian = polar && with_cartesian;
                 let pairwise_angles = polar && pairwise_angles;
-                let features = if polar && with_cartesian { 4 } else { 2 } * keypoints
+                let features = if with_cartesian { 4 } else { 2 } * keypoints
                     + if pairwise_angles {
                         keypoints * (keypoints - 1) / 2
                     } else {
@@ -205,7 +206,7 @@ impl EncoderConfig {
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
                         upsample: self.keypoint_upsample,
-                        with_cartesian: polar && with_cartesian,
+                        with_cartesian,
                         pairwise_angles,
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
@@ -385,25 +386,27 @@ impl Encoder {
         // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
         // angle and radius of the cells about the image centre.
         let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
-        let mut grids = match &head.polar_axis {
+        let expected = |grid: Tensor<3>| (attention.clone() * grid).sum_dim(2); // [n, K, 1]
+        let mut coordinates = match &head.polar_axis {
             Some(axis) => {
                 let (angle, radius) = polar_grid(grid_x.clone(), grid_y.clone(), axis.val());
-                vec![angle, radius]
+                vec![expected(angle), expected(radius)]
             }
-            None => vec![grid_x.clone(), grid_y.clone()],
+            None => vec![expected(grid_x.clone()), expected(grid_y.clone())],
         };
-        let expected = |grid: Tensor<3>| (attention.clone() * grid).sum_dim(2); // [n, K, 1]
-        let pairwise = head
-            .pairwise_angles
-            .then(|| pairwise_angles(expected(grid_x.clone()), expected(grid_y.clone())));
-        if head.with_cartesian {
-            grids.extend([grid_x, grid_y]);
+        // The polar head's extras share one expected (x, y) per keypoint.
+        let cartesian = (head.with_cartesian || head.pairwise_angles)
+            .then(|| (expected(grid_x), expected(grid_y)));
+        if head.with_cartesian
+            && let Some((x, y)) = &cartesian
+        {
+            coordinates.extend([x.clone(), y.clone()]);
         }
-        let features = grids.len() * k;
-        let coordinates = grids.into_iter().map(expected).collect();
+        let features = coordinates.len() * k;
         let keypoints = Tensor::cat(coordinates, 1).reshape([n, features]); // [n, 2K or 4K]
-        let keypoints = match pairwise {
-            Some(angles) => Tensor::cat(vec![keypoints, angles], 1), // [n, 2K + K (K - 1) / 2]
+        let keypoints = match cartesian.filter(|_| head.pairwise_angles) {
+            // [n, features + K (K - 1) / 2]
+            Some((x, y)) => Tensor::cat(vec![keypoints, pairwise_angles(x, y)], 1),
             None => keypoints,
         };
         match &head.hidden {
