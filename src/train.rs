@@ -303,6 +303,18 @@ impl TrainConfig {
                 ),
             ));
         }
+        if self.batch_group_size > 1
+            && self.loss.action_response_weight > 0.0
+            && self.loss.action_response_horizon > 1
+        {
+            return Err(Error::config(
+                "loss.action_response_horizon",
+                format!(
+                    "{} steps cannot be read from grouped batches (batch_group_size = {}); use 1",
+                    self.loss.action_response_horizon, self.batch_group_size
+                ),
+            ));
+        }
         if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
             return Err(Error::config(
                 "learning_rate",
@@ -481,12 +493,40 @@ fn scale_frames(data: &Dataset, seed: u64, device: &Device) -> Tensor<4> {
 
 /// A training sample `(i_{t-1}, i_t, u_t, i_{t+1})` is addressed by (episode, t), 1 <= t < T.
 pub(crate) fn sample_batch(data: &Dataset, rng: &mut ChaCha8Rng, n: usize) -> Vec<(usize, usize)> {
+    sample_batch_reaching(data, rng, n, 1)
+}
+
+/// Samples whose frame `t + reach` is in the episode too: 1 <= t <= T - reach (`reach = 1`
+/// draws exactly what [`sample_batch`] draws).
+fn sample_batch_reaching(
+    data: &Dataset,
+    rng: &mut ChaCha8Rng,
+    n: usize,
+    reach: usize,
+) -> Vec<(usize, usize)> {
     (0..n)
         .map(|_| {
             (
                 rng.random_range(0..data.episodes()),
-                rng.random_range(1..data.steps()),
+                rng.random_range(1..data.steps() + 1 - reach),
             )
+        })
+        .collect()
+}
+
+/// The drive of the `k`-step action response: `sum_{j<k} (k - j) u_{t+j}` for every sample,
+/// `[n * du]` row-major. Under Euler steps `v' = v + dt B u`, `h' = h + dt v'` it is what
+/// `(h_{t+k} - h_t - k (h_t - h_{t-1})) / dt^2` equals through `B`.
+pub(crate) fn k_step_drive(data: &Dataset, batch: &[(usize, usize)], k: usize) -> Vec<f32> {
+    let du = data.action_dim();
+    batch
+        .iter()
+        .flat_map(|&(e, t)| {
+            (0..du).map(move |i| {
+                (0..k)
+                    .map(|j| (k - j) as f32 * data.actions[[e, t + j, i]])
+                    .sum::<f32>()
+            })
         })
         .collect()
 }
@@ -577,6 +617,12 @@ pub fn loss_inputs(
     let mut rng = step_rng(config.seed, step);
     let n = config.batch_size;
     let du = data.action_dim();
+    // The k-step action-response term needs the frame `i_{t+k}` of each sample.
+    let reach = if config.loss.action_response_weight > 0.0 {
+        config.loss.action_response_horizon
+    } else {
+        1
+    };
     let batch = if config.batch_group_size > 1 {
         sample_grouped_batch(
             data,
@@ -586,10 +632,25 @@ pub fn loss_inputs(
             config.batch_group_window,
         )
     } else {
-        sample_batch(data, &mut rng, n)
+        sample_batch_reaching(data, &mut rng, n, reach)
     };
     let (frames, u) = batch_tensors(data, &batch, device);
-    let h = model.encoder.forward(frames); // [3n, du]
+    let (h, ahead) = if reach > 1 {
+        // The frames `i_{t+k}` ride in the same encoder call as the others.
+        let ahead_frames =
+            frames_to_tensor(batch.iter().map(|&(e, t)| data.frame(e, t + reach)), device);
+        let h = model
+            .encoder
+            .forward(Tensor::cat(vec![frames, ahead_frames], 0)); // [4n, du]
+        let drive = TensorData::new(k_step_drive(data, &batch, reach), [n, du]);
+        let ahead = (
+            h.clone().narrow(0, 3 * n, n),
+            Tensor::from_data(drive, device),
+        );
+        (h, Some(ahead))
+    } else {
+        (model.encoder.forward(frames), None) // [3n, du]
+    };
     let mut permutation: Vec<usize> = (0..n).collect();
     permutation.shuffle(&mut rng);
     LossInputs {
@@ -604,6 +665,7 @@ pub fn loss_inputs(
             normal_tensor(&mut rng, n, du, device),
         ),
         permutation,
+        ahead,
     }
 }
 
@@ -755,6 +817,16 @@ pub fn train(
             format!(
                 "the dataset is from {}, the config is for {}",
                 data.meta.env, config.env
+            ),
+        ));
+    }
+    let horizon = config.loss.action_response_horizon;
+    if config.loss.action_response_weight > 0.0 && horizon + 1 > data.steps() {
+        return Err(Error::config(
+            "loss.action_response_horizon",
+            format!(
+                "{horizon} steps do not fit after a step t >= 1 in the dataset's episodes of {} steps",
+                data.steps()
             ),
         ));
     }
@@ -1061,6 +1133,69 @@ mod tests {
     }
 
     #[test]
+    fn k_step_drive_is_what_an_euler_latent_responds_to() {
+        use crate::losses::action_response_unexplained;
+        let config = crate::data::CollectConfig {
+            transitions: 400,
+            episode_len: 20,
+            ..crate::data::CollectConfig::new(EnvKind::PointMass, 5)
+        };
+        let data = crate::data::collect(&config, |_| {}).expect("collect");
+        let (dt, k) = (0.02f32, 6);
+        // A latent that moves by Euler steps with one input gain `B` (turned and sheared), from
+        // a random start at rest in every episode.
+        let gain = [[0.8f32, -0.6], [0.3, 1.1]];
+        let mut rng = step_rng(3, 0);
+        let latent: Vec<Vec<[f32; 2]>> = (0..data.episodes())
+            .map(|e| {
+                let mut h = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+                let mut v = [0.0f32; 2];
+                let mut path = vec![h];
+                for t in 0..data.steps() {
+                    let u = [data.actions[[e, t, 0]], data.actions[[e, t, 1]]];
+                    for i in 0..2 {
+                        v[i] += dt * 40.0 * (gain[i][0] * u[0] + gain[i][1] * u[1]);
+                        h[i] += dt * v[i];
+                    }
+                    path.push(h);
+                }
+                path
+            })
+            .collect();
+        let batch = sample_batch_reaching(&data, &mut rng, 64, k);
+        assert!(batch.iter().all(|&(_, t)| t >= 1 && t + k <= data.steps()));
+        let device = crate::model::cpu_device();
+        let rows = |map: &dyn Fn([f32; 2]) -> [f32; 2], offset: isize| {
+            let values: Vec<f32> = batch
+                .iter()
+                .flat_map(|&(e, t)| map(latent[e][(t as isize + offset) as usize]))
+                .collect();
+            Tensor::<2>::from_data(TensorData::new(values, [batch.len(), 2]), &device)
+        };
+        let drive = Tensor::<2>::from_data(
+            TensorData::new(k_step_drive(&data, &batch, k), [batch.len(), 2]),
+            &device,
+        );
+        let unexplained = |map: &dyn Fn([f32; 2]) -> [f32; 2]| {
+            let (prev, now, ahead) = (rows(map, -1), rows(map, 0), rows(map, k as isize));
+            let response = ahead - now.clone() - (now - prev) * k as f32;
+            crate::model::to_vec(action_response_unexplained(response, drive.clone()))[0]
+        };
+        // Flat: one linear map of the drive explains the whole k-step response.
+        let flat = unexplained(&|h| h);
+        assert!(flat < 1e-3, "flat latent: {flat}");
+        // The same latent curled round the origin: its response turns with the arc.
+        let curled = unexplained(&|h| {
+            let (r, angle) = (2.0 + h[1], 1.5 * h[0]);
+            [r * angle.cos(), r * angle.sin()]
+        });
+        assert!(
+            curled > 0.05 && curled > 50.0 * flat,
+            "curled {curled}, flat {flat}"
+        );
+    }
+
+    #[test]
     fn grouped_batches_take_distinct_nearby_steps_of_one_episode() {
         let config = crate::data::CollectConfig {
             transitions: 120,
@@ -1104,6 +1239,46 @@ mod tests {
         assert!(err.contains("batch_group_window"), "{err}");
         config.batch_group_window = 8;
         assert!(config.validate().is_ok());
+    }
+
+    #[test]
+    fn action_response_horizon_is_checked_by_name() {
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        config.loss.action_response_weight = 3.0;
+        config.loss.action_response_horizon = 0;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("loss.action_response_horizon"), "{err}");
+        // k steps ahead cannot be read from grouped batches; one step can.
+        config.loss.action_response_horizon = 5;
+        config.batch_group_size = 4;
+        config.batch_group_window = 8;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("loss.action_response_horizon"), "{err}");
+        config.loss.action_response_horizon = 1;
+        assert!(config.validate().is_ok());
+        // A horizon longer than the dataset's episodes is refused before training starts.
+        let collect = crate::data::CollectConfig {
+            transitions: 40,
+            episode_len: 20,
+            ..crate::data::CollectConfig::new(EnvKind::Reacher, 1)
+        };
+        let data = crate::data::collect(&collect, |_| {}).expect("collect");
+        config.batch_group_size = 1;
+        config.loss.action_response_horizon = 20;
+        let dir = std::env::temp_dir().join(format!("procl-horizon-{}", std::process::id()));
+        let device = crate::model::cpu_device();
+        let err = train(
+            &config,
+            &data,
+            &RunPaths::new(&dir),
+            false,
+            &device,
+            |_, _| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("loss.action_response_horizon"), "{err}");
+        assert!(!dir.exists(), "nothing is written for a refused config");
     }
 
     #[test]

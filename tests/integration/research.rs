@@ -73,6 +73,7 @@ fn risk_of_map(data: &Dataset, map: [[f32; 2]; 2], loss: &LossConfig, batches: u
             latent_noise: normal(&mut rng),
             curvature_noise: (normal(&mut rng), normal(&mut rng), normal(&mut rng)),
             permutation,
+            ahead: None,
         };
         let terms = procl_loss(loss, &dynamics, inputs, data.meta.control_dt_s);
         total += to_vec(terms.lyap)[0] as f64;
