@@ -81,6 +81,17 @@ pub struct EncoderConfig {
     /// to 90 degrees of angle.
     #[serde(default = "default_keypoint_upsample")]
     pub keypoint_upsample: usize,
+    /// Polar heads with `pairwise_angles`: the fan-in initial weights from the pairwise angles
+    /// into the head's first layer are multiplied by this (1: as drawn; 0: the angles start
+    /// with no influence and enter only as training finds them useful). Pairwise angles of
+    /// keypoints that sit off the arm wrap inside the joint ranges, and the fresh head's random
+    /// mix of them already curls the shoulder round an arc at step 1, a shape training keeps.
+    #[serde(default = "default_pairwise_init_scale")]
+    pub pairwise_init_scale: f64,
+}
+
+fn default_pairwise_init_scale() -> f64 {
+    1.0
 }
 
 fn default_sharpness() -> f64 {
@@ -107,10 +118,17 @@ impl EncoderConfig {
             keypoint_sharpness: 1.0,
             init_latent_std: None,
             keypoint_upsample: default_keypoint_upsample(),
+            pairwise_init_scale: default_pairwise_init_scale(),
         }
     }
 
     pub(crate) fn validate(&self) -> Result<()> {
+        if !(self.pairwise_init_scale.is_finite() && self.pairwise_init_scale >= 0.0) {
+            return Err(Error::config(
+                "model.encoder.pairwise_init_scale",
+                format!("{} must be finite and >= 0", self.pairwise_init_scale),
+            ));
+        }
         if !(1..=4).contains(&self.keypoint_upsample) {
             return Err(Error::config(
                 "model.encoder.keypoint_upsample",
@@ -323,6 +341,38 @@ impl Encoder {
             let values = Tensor::<1>::from_data(bias.reshape([du]).into_data(), &device);
             out.bias = Some(Param::from_tensor(super::trainable(values)));
         }
+        self
+    }
+
+    /// Multiplies the weights from the pairwise-angle inputs into the keypoint head's first
+    /// layer by `scale` (no-op without pairwise angles); see
+    /// [`EncoderConfig::pairwise_init_scale`].
+    pub fn scale_pairwise_inputs(mut self, scale: f64) -> Self {
+        let Some(head) = self.keypoints.as_mut() else {
+            return self;
+        };
+        if !head.pairwise_angles {
+            return self;
+        }
+        let keypoints = head.log_sharpness.val().dims()[0];
+        let per_keypoint = if head.with_cartesian { 4 } else { 2 };
+        let first = head.hidden.as_mut().unwrap_or(&mut head.out);
+        // Weights are [in, out]: the pairwise angles are the inputs after the per-keypoint ones.
+        let weight = first.weight.val().detach();
+        let [inputs, _] = weight.dims();
+        let device = weight.device();
+        let row_scale: Vec<f32> = (0..inputs)
+            .map(|i| {
+                if i < per_keypoint * keypoints {
+                    1.0
+                } else {
+                    scale as f32
+                }
+            })
+            .collect();
+        let row_scale = Tensor::<2>::from_data(TensorData::new(row_scale, [inputs, 1]), &device);
+        let scaled = (weight * row_scale).into_data();
+        first.weight = Param::from_tensor(super::trainable(Tensor::from_data(scaled, &device)));
         self
     }
 
@@ -796,6 +846,41 @@ mod tests {
         let h = to_vec(encoder.forward(frames(&device)));
         assert_eq!(h.len(), 48);
         assert!(h.iter().all(|x| x.is_finite()), "{h:?}");
+
+        // `pairwise_init_scale` scales the 6 pair rows of the first layer and no other.
+        let weights = |encoder: &Encoder| {
+            let head = encoder.keypoints.as_ref().expect("keypoint head");
+            to_vec(head.hidden.as_ref().expect("tanh layer").weight.val())
+        };
+        let drawn = weights(&encoder);
+        let scaled = weights(&encoder.clone().scale_pairwise_inputs(0.5));
+        for (i, (d, s)) in drawn.iter().zip(&scaled).enumerate() {
+            let want = if i / 8 < 8 { *d } else { 0.5 * d };
+            assert_eq!(*s, want, "weight {i} (input {}, output {})", i / 8, i % 8);
+        }
+        assert!(drawn[8 * 8..].iter().any(|&w| w != 0.0));
+        // At 0 (through the model config) the fresh latent does not see the pairs at all.
+        config.pairwise_init_scale = 0.0;
+        let model = crate::model::ModelConfig {
+            encoder: config.clone(),
+            ..crate::model::ModelConfig::for_action_dim(2)
+        };
+        let zeroed = model.init(5, &device).expect("init").encoder;
+        let pairs = to_vec(
+            zeroed
+                .keypoints
+                .as_ref()
+                .unwrap()
+                .hidden
+                .as_ref()
+                .unwrap()
+                .weight
+                .val(),
+        );
+        assert!(pairs[8 * 8..].iter().all(|&w| w == 0.0));
+        config.pairwise_init_scale = -1.0;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("model.encoder.pairwise_init_scale"), "{err}");
     }
 
     #[test]

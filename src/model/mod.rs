@@ -110,7 +110,13 @@ impl ModelConfig {
             encoder: self.encoder.init(device),
             dynamics: self.dynamics.init(device),
         };
-        Ok(reinit_params(model, seed))
+        let mut model = reinit_params(model, seed);
+        if self.encoder.pairwise_init_scale != 1.0 {
+            model.encoder = model
+                .encoder
+                .scale_pairwise_inputs(self.encoder.pairwise_init_scale);
+        }
+        Ok(model)
     }
 
     /// Checks sizes before anything is built.

@@ -312,7 +312,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     expected.loss.lambda_r = 0.1;
     expected.model.encoder.head = keypoint_head(16, 32, true);
     assert_eq!(expected, new_design);
-    // Stops 16 and 17: each cell is the preset plus the one change its name says.
+    // Stops 16-18: each cell is the preset plus the one change its name says.
     let preset_plus = |name: &str, change: &dyn Fn(&mut TrainConfig)| {
         let mut expected = new_design.clone();
         change(&mut expected);
@@ -410,6 +410,46 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus("stop17_preset_transition_init_std=0.02", &|c| {
         c.model.dynamics.init_std = 0.02
     });
+    preset_plus("stop18_preset_action_response_k=10_weight=3", &|c| {
+        c.loss.action_response_weight = 3.0;
+        c.loss.action_response_horizon = 10;
+    });
+    preset_plus(
+        "stop18_preset_pairwise_angles_action_response_k=10_weight=3",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.loss.action_response_weight = 3.0;
+            c.loss.action_response_horizon = 10;
+        },
+    );
+    preset_plus(
+        "stop18_preset_action_response_velocity_k=5_weight=3",
+        &|c| {
+            c.loss.action_response_weight = 3.0;
+            c.loss.action_response_horizon = 5;
+            c.loss.action_response_velocity = true;
+        },
+    );
+    preset_plus(
+        "stop18_preset_pairwise_angles_action_response_velocity_k=10_weight=10",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.loss.action_response_weight = 10.0;
+            c.loss.action_response_horizon = 10;
+            c.loss.action_response_velocity = true;
+        },
+    );
+    preset_plus("stop18_preset_pairwise_angles_lambda_cpc=0.1", &|c| {
+        c.model.encoder.head = pairwise(32);
+        c.loss.lambda_cpc = 0.1;
+    });
+    preset_plus(
+        "stop18_preset_pairwise_angles_no_orientation_search",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.orientation_search_every = 0;
+        },
+    );
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
     let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
