@@ -88,6 +88,12 @@ pub struct EncoderConfig {
     /// mix of them already curls the shoulder round an arc at step 1, a shape training keeps.
     #[serde(default = "default_pairwise_init_scale")]
     pub pairwise_init_scale: f64,
+    /// Polar heads: each cell's angle fades linearly to 0 over this many degrees before the cut
+    /// (0: no fade, a jump of 2 pi at the cut). The cut sits in the shoulder's unreachable gap,
+    /// but the reacher's forearm and fingertip cross it, and a keypoint attending to them jumps
+    /// there; faded, its angle goes to 0 from both sides and stays continuous.
+    #[serde(default)]
+    pub polar_cut_fade_deg: f64,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -119,10 +125,19 @@ impl EncoderConfig {
             init_latent_std: None,
             keypoint_upsample: default_keypoint_upsample(),
             pairwise_init_scale: default_pairwise_init_scale(),
+            polar_cut_fade_deg: 0.0,
         }
     }
 
     pub(crate) fn validate(&self) -> Result<()> {
+        if !(self.polar_cut_fade_deg.is_finite()
+            && (0.0..=180.0).contains(&self.polar_cut_fade_deg))
+        {
+            return Err(Error::config(
+                "model.encoder.polar_cut_fade_deg",
+                format!("{} must be in [0, 180]", self.polar_cut_fade_deg),
+            ));
+        }
         if !(self.pairwise_init_scale.is_finite() && self.pairwise_init_scale >= 0.0) {
             return Err(Error::config(
                 "model.encoder.pairwise_init_scale",
@@ -224,6 +239,7 @@ impl EncoderConfig {
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
                         upsample: self.keypoint_upsample,
+                        cut_fade_rad: self.polar_cut_fade_deg.to_radians(),
                         with_cartesian,
                         pairwise_angles,
                         hidden: hidden_layer,
@@ -268,6 +284,8 @@ pub struct KeypointHead {
     with_cartesian: bool,
     /// Polar keypoints followed by the angle between each pair of them: `K (K - 1) / 2` more.
     pairwise_angles: bool,
+    /// Width of the polar angle's fade before the cut, radians (0: none).
+    cut_fade_rad: f64,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -439,7 +457,12 @@ impl Encoder {
         let expected = |grid: Tensor<3>| (attention.clone() * grid).sum_dim(2); // [n, K, 1]
         let mut coordinates = match &head.polar_axis {
             Some(axis) => {
-                let (angle, radius) = polar_grid(grid_x.clone(), grid_y.clone(), axis.val());
+                let (angle, radius) = polar_grid(
+                    grid_x.clone(),
+                    grid_y.clone(),
+                    axis.val(),
+                    head.cut_fade_rad,
+                );
                 vec![expected(angle), expected(radius)]
             }
             None => vec![expected(grid_x.clone()), expected(grid_y.clone())],
@@ -470,8 +493,14 @@ impl Encoder {
 /// angle from `axis` (in `(-pi, pi]`, faded to 0 within [`POLAR_FADE_RADIUS`] of the centre,
 /// where the angle is undefined) and its distance from the centre. The expected angle under a
 /// keypoint's attention then grows with the angle of what it attends to, with no jump unless
-/// that crosses the cut opposite `axis`.
-fn polar_grid(x: Tensor<3>, y: Tensor<3>, axis: Tensor<1>) -> (Tensor<3>, Tensor<3>) {
+/// that crosses the cut opposite `axis`; with `cut_fade > 0` the angle also fades linearly to 0
+/// over the last `cut_fade` radians before the cut, so it does not jump there either.
+fn polar_grid(
+    x: Tensor<3>,
+    y: Tensor<3>,
+    axis: Tensor<1>,
+    cut_fade: f64,
+) -> (Tensor<3>, Tensor<3>) {
     let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
     let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
     // Rotate by -m so the axis lies along +x and the cut along -x, where atan2 jumps.
@@ -479,7 +508,14 @@ fn polar_grid(x: Tensor<3>, y: Tensor<3>, axis: Tensor<1>) -> (Tensor<3>, Tensor
     let across = y * cos_m - x * sin_m;
     let r_squared = along.clone().powi_scalar(2) + across.clone().powi_scalar(2);
     let fade = r_squared.clone() / (r_squared.clone() + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
-    (across.atan2(along) * fade, r_squared.sqrt())
+    let angle = across.atan2(along);
+    let angle = if cut_fade > 0.0 {
+        let to_cut = angle.clone().abs().neg().add_scalar(std::f64::consts::PI);
+        angle * (to_cut / cut_fade).clamp(0.0, 1.0)
+    } else {
+        angle
+    };
+    (angle * fade, r_squared.sqrt())
 }
 
 /// Expected keypoint positions `x, y` (`[n, K, 1]` each, about the image centre) -> the angle
@@ -764,7 +800,7 @@ mod tests {
         let y = t3(vec![0.0, 0.5, -0.001, 0.0]);
         let fade = 0.25 / (0.25 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
         let axis = |v: [f32; 2]| Tensor::<1>::from_data(TensorData::new(v.to_vec(), [2]), &device);
-        let (angle, radius) = polar_grid(x.clone(), y.clone(), axis([1.0, 0.0]));
+        let (angle, radius) = polar_grid(x.clone(), y.clone(), axis([1.0, 0.0]), 0.0);
         let (angle, radius) = (to_vec(angle), to_vec(radius));
         let pi = std::f32::consts::PI;
         for (got, want) in angle.iter().zip([0.0, pi / 2.0 * fade, -pi * fade, 0.0]) {
@@ -775,10 +811,20 @@ mod tests {
         }
         // With the axis along +y the cut moves to -y: the point along +x is now at -pi/2 and
         // the one near -x at +pi/2, continuous across the old cut.
-        let (angle, _) = polar_grid(x, y, axis([0.0, 1.0]));
+        let (angle, _) = polar_grid(x.clone(), y.clone(), axis([0.0, 1.0]), 0.0);
         let angle = to_vec(angle);
         assert!((angle[0] + pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
         assert!((angle[2] - pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
+        // A fade of 1 rad before the cut: the point just past -x (0.002 rad from the cut)
+        // nearly vanishes, the quarter turns (pi/2 from the cut) stay whole.
+        let (angle, _) = polar_grid(x, y, axis([1.0, 0.0]), 1.0);
+        let angle = to_vec(angle);
+        for (got, want) in angle
+            .iter()
+            .zip([0.0, pi / 2.0 * fade, -0.002 * pi * fade, 0.0])
+        {
+            assert!((got - want).abs() < 0.01, "{angle:?}");
+        }
     }
 
     #[test]
