@@ -450,6 +450,34 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             c.orientation_search_every = 0;
         },
     );
+    preset_plus(
+        "stop18_preset_pairwise_angles_pairwise_init_scale=0",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.model.encoder.pairwise_init_scale = 0.0;
+        },
+    );
+    preset_plus(
+        "stop18_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.model.encoder.pairwise_init_scale = 0.0;
+            c.model.encoder.polar_cut_fade_deg = 15.0;
+        },
+    );
+    preset_plus("stop18_preset_cut_fade=15", &|c| {
+        c.model.encoder.polar_cut_fade_deg = 15.0
+    });
+    preset_plus(
+        "stop18_pc3_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
+        &|c| {
+            c.method = Method::Pc3;
+            c.loss.lambda_r = 0.0;
+            c.model.encoder.head = pairwise(32);
+            c.model.encoder.pairwise_init_scale = 0.0;
+            c.model.encoder.polar_cut_fade_deg = 15.0;
+        },
+    );
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
     // `risk-search` cells the stop-13 rule they replaced.
     let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
