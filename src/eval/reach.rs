@@ -80,6 +80,8 @@ pub struct EpisodeRecord {
     /// Latent `h` at each step (empty for the oracle).
     pub latents: Vec<Vec<f64>>,
     pub goal_latent: Vec<f64>,
+    /// The goal's true configuration.
+    pub goal_config: Vec<f64>,
     /// Frames, when recorded (for the GIF), and the goal image.
     #[serde(skip)]
     pub frames: Vec<Frame>,
@@ -105,6 +107,7 @@ pub fn run_episode(
     sim.render(&mut frame);
     let mut record = EpisodeRecord {
         goal_frame: record_frames.then_some(goal_frame),
+        goal_config: goal.q.clone(),
         ..Default::default()
     };
     let mut u = vec![0.0; sim.action_dim()];
@@ -141,6 +144,14 @@ pub struct MethodSummary {
     pub per_step_mean: Vec<f64>,
     pub per_step_std: Vec<f64>,
     pub final_distances: Vec<f64>,
+    /// Each episode's start, goal and final true configuration, in episode order: where a
+    /// failed episode ended (at a joint limit, or short of the goal in free space).
+    #[serde(default)]
+    pub start_configs: Vec<Vec<f64>>,
+    #[serde(default)]
+    pub goal_configs: Vec<Vec<f64>>,
+    #[serde(default)]
+    pub final_configs: Vec<Vec<f64>>,
     pub final_mean: f64,
     pub final_std: f64,
     pub success_rate: f64,
@@ -204,6 +215,15 @@ pub fn summarise(
         per_step_mean,
         per_step_std,
         final_distances: finals.clone(),
+        start_configs: episodes
+            .iter()
+            .filter_map(|e| e.configs.first().cloned())
+            .collect(),
+        goal_configs: episodes.iter().map(|e| e.goal_config.clone()).collect(),
+        final_configs: episodes
+            .iter()
+            .filter_map(|e| e.configs.last().cloned())
+            .collect(),
         final_mean,
         final_std,
         success_rate: successes as f64 / finals.len().max(1) as f64,

@@ -38,6 +38,19 @@ fn oracle_reaches_every_goal_in_every_env() {
             oracle.per_step_mean[0]
         );
         assert!(oracle.final_mean < 0.1 * protocol.success_threshold);
+        // Each episode's start, goal and final configuration, in task order.
+        let tasks = reach_tasks(env, &protocol);
+        assert_eq!(oracle.final_configs.len(), tasks.len());
+        for (k, (start, goal)) in tasks.iter().enumerate() {
+            assert_eq!(oracle.start_configs[k], start.q, "{env} episode {k}");
+            assert_eq!(oracle.goal_configs[k], goal.q, "{env} episode {k}");
+            let gap = oracle.final_configs[k]
+                .iter()
+                .zip(&goal.q)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(gap < protocol.success_threshold, "{env} episode {k}: {gap}");
+        }
     }
 }
 
@@ -130,6 +143,9 @@ fn eval_writes_the_documented_outputs() {
             "per_step_mean",
             "per_step_std",
             "final_distances",
+            "start_configs",
+            "goal_configs",
+            "final_configs",
             "final_mean",
             "final_std",
             "success_rate",
