@@ -760,7 +760,10 @@ impl Objective for ProclObjective<'_> {
         let data = self.data;
         let every_frame =
             (0..data.episodes()).flat_map(|e| (0..=data.steps()).map(move |t| data.frame(e, t)));
-        model.encoder = model.encoder.place_polar_cut(every_frame);
+        model.encoder = match self.config.model.encoder.polar_cut_deg {
+            Some(cut_deg) => model.encoder.with_polar_cut_at(cut_deg),
+            None => model.encoder.place_polar_cut(every_frame),
+        };
         if let Some(target_std) = self.config.model.encoder.init_latent_std
             && target_std > 0.0
         {

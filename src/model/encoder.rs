@@ -94,6 +94,13 @@ pub struct EncoderConfig {
     /// there; faded, its angle goes to 0 from both sides and stays continuous.
     #[serde(default)]
     pub polar_cut_fade_deg: f64,
+    /// Polar heads: the direction of the angle cut in the image, degrees from +x with image
+    /// rows growing downwards (`None`: the quietest direction of the training frames, see
+    /// [`Encoder::place_polar_cut`]). On the reacher that estimate lands at 167.5 degrees,
+    /// 7.5 degrees past the shoulder's limit at -160 (the fingertip, which overhangs the gap
+    /// on one side only, shifts it); the gap's centre is 180.
+    #[serde(default)]
+    pub polar_cut_deg: Option<f64>,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -126,10 +133,19 @@ impl EncoderConfig {
             keypoint_upsample: default_keypoint_upsample(),
             pairwise_init_scale: default_pairwise_init_scale(),
             polar_cut_fade_deg: 0.0,
+            polar_cut_deg: None,
         }
     }
 
     pub(crate) fn validate(&self) -> Result<()> {
+        if let Some(cut) = self.polar_cut_deg
+            && !cut.is_finite()
+        {
+            return Err(Error::config(
+                "model.encoder.polar_cut_deg",
+                format!("{cut} must be a finite angle in degrees"),
+            ));
+        }
         if !(self.polar_cut_fade_deg.is_finite()
             && (0.0..=180.0).contains(&self.polar_cut_fade_deg))
         {
@@ -399,14 +415,28 @@ impl Encoder {
     /// Data-dependent initialisation, run once before training on every frame of the dataset
     /// (a 256-frame sample put the reacher's cut inside the shoulder's range for 2 of 6 seeds);
     /// the axis is stored with the weights.
-    pub fn place_polar_cut<'a>(mut self, frames: impl Iterator<Item = &'a [u8]>) -> Self {
+    pub fn place_polar_cut<'a>(self, frames: impl Iterator<Item = &'a [u8]>) -> Self {
+        if self.polar_axis().is_none() {
+            return self;
+        }
+        let cut = quietest_direction(frames);
+        self.set_polar_cut(cut)
+    }
+
+    /// Puts the polar head's angle cut at `cut_deg` (degrees from +x, image rows growing
+    /// downwards; no-op for the other heads).
+    pub fn with_polar_cut_at(self, cut_deg: f64) -> Self {
+        let (sin, cos) = cut_deg.to_radians().sin_cos();
+        self.set_polar_cut([cos as f32, sin as f32])
+    }
+
+    fn set_polar_cut(mut self, [cut_x, cut_y]: [f32; 2]) -> Self {
         let Some(head) = self.keypoints.as_mut() else {
             return self;
         };
         let Some(axis) = head.polar_axis.as_mut() else {
             return self;
         };
-        let [cut_x, cut_y] = quietest_direction(frames);
         let device = axis.val().device();
         *axis = Param::from_tensor(Tensor::from_data(
             TensorData::new(vec![-cut_x, -cut_y], [2]),
@@ -788,6 +818,18 @@ mod tests {
         );
         let margin = std::f32::consts::PI - 0.1;
         assert!(angles.iter().all(|a| a.abs() < margin), "{angles:?}");
+        // A cut put at 180 degrees (`model.encoder.polar_cut_deg`) is the gap's centre (world
+        // -x): the axis points along image +x.
+        let centred = encoder.with_polar_cut_at(180.0);
+        let [ax, ay] = centred.polar_axis().unwrap();
+        assert!(
+            (ax - 1.0).abs() < 1e-6 && ay.abs() < 1e-6,
+            "axis ({ax}, {ay})"
+        );
+        let mut bad = config.clone();
+        bad.polar_cut_deg = Some(f64::NAN);
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains("model.encoder.polar_cut_deg"), "{err}");
     }
 
     #[test]
