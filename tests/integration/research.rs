@@ -465,6 +465,15 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             c.model.encoder.polar_cut_fade_deg = 15.0;
         },
     );
+    preset_plus(
+        "stop18_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15_cut=180",
+        &|c| {
+            c.model.encoder.head = pairwise(32);
+            c.model.encoder.pairwise_init_scale = 0.0;
+            c.model.encoder.polar_cut_fade_deg = 15.0;
+            c.model.encoder.polar_cut_deg = Some(180.0);
+        },
+    );
     preset_plus("stop18_preset_cut_fade=15", &|c| {
         c.model.encoder.polar_cut_fade_deg = 15.0
     });
