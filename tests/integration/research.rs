@@ -474,6 +474,9 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             c.model.encoder.polar_cut_deg = Some(180.0);
         },
     );
+    preset_plus("stop18_preset_cut=180", &|c| {
+        c.model.encoder.polar_cut_deg = Some(180.0)
+    });
     preset_plus("stop18_preset_cut_fade=15", &|c| {
         c.model.encoder.polar_cut_fade_deg = 15.0
     });
