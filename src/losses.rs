@@ -270,6 +270,16 @@ impl Default for LossConfig {
 }
 
 impl LossConfig {
+    /// How many steps past `t` a training sample's frames reach: the action-response term's
+    /// horizon `k` when the term is on (it reads `i_{t+k}`), else 1 (`i_{t+1}`).
+    pub fn frames_ahead(&self) -> usize {
+        if self.action_response_weight > 0.0 {
+            self.action_response_horizon
+        } else {
+            1
+        }
+    }
+
     /// Rejects values that make no sense (negative weights or noise, zero gains).
     pub fn validate(&self) -> Result<()> {
         let non_negative = [
@@ -548,8 +558,11 @@ pub fn procl_loss(
     } = inputs;
     let h_now_for_variance = h_now.clone();
     let action_response = (config.action_response_weight > 0.0).then(|| {
-        let k = config.action_response_horizon as f64;
-        let (h_ahead, drive) = ahead.unwrap_or_else(|| (h_next.clone(), u.clone()));
+        // Without `ahead` the term reads one step, whatever the configured horizon.
+        let (k, (h_ahead, drive)) = match ahead {
+            Some(ahead) => (config.action_response_horizon as f64, ahead),
+            None => (1.0, (h_next.clone(), u.clone())),
+        };
         let step = h_now.clone() - h_prev.clone(); // dt v_t
         let moved = h_ahead - h_now.clone(); // h_{t+k} - h_t
         if config.action_response_velocity {

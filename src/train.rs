@@ -303,10 +303,7 @@ impl TrainConfig {
                 ),
             ));
         }
-        if self.batch_group_size > 1
-            && self.loss.action_response_weight > 0.0
-            && self.loss.action_response_horizon > 1
-        {
+        if self.batch_group_size > 1 && self.loss.frames_ahead() > 1 {
             return Err(Error::config(
                 "loss.action_response_horizon",
                 format!(
@@ -517,7 +514,7 @@ fn sample_batch_reaching(
 /// The drive of the `k`-step action response: `sum_{j<k} (k - j) u_{t+j}` for every sample,
 /// `[n * du]` row-major. Under Euler steps `v' = v + dt B u`, `h' = h + dt v'` it is what
 /// `(h_{t+k} - h_t - k (h_t - h_{t-1})) / dt^2` equals through `B`.
-pub(crate) fn k_step_drive(data: &Dataset, batch: &[(usize, usize)], k: usize) -> Vec<f32> {
+fn k_step_drive(data: &Dataset, batch: &[(usize, usize)], k: usize) -> Vec<f32> {
     let du = data.action_dim();
     batch
         .iter()
@@ -618,11 +615,7 @@ pub fn loss_inputs(
     let n = config.batch_size;
     let du = data.action_dim();
     // The k-step action-response term needs the frame `i_{t+k}` of each sample.
-    let reach = if config.loss.action_response_weight > 0.0 {
-        config.loss.action_response_horizon
-    } else {
-        1
-    };
+    let reach = config.loss.frames_ahead();
     let batch = if config.batch_group_size > 1 {
         sample_grouped_batch(
             data,
@@ -823,7 +816,7 @@ pub fn train(
             ),
         ));
     }
-    let horizon = config.loss.action_response_horizon;
+    let horizon = config.loss.frames_ahead();
     if config.loss.action_response_weight > 0.0 && horizon + 1 > data.steps() {
         return Err(Error::config(
             "loss.action_response_horizon",
@@ -1135,15 +1128,20 @@ mod tests {
         assert!(config.validate().is_ok());
     }
 
+    /// `transitions` random-control transitions of `env` in episodes of 20 steps.
+    fn tiny_dataset(env: EnvKind, seed: u64, transitions: usize) -> Dataset {
+        let config = crate::data::CollectConfig {
+            transitions,
+            episode_len: 20,
+            ..crate::data::CollectConfig::new(env, seed)
+        };
+        crate::data::collect(&config, |_| {}).expect("collect")
+    }
+
     #[test]
     fn k_step_drive_is_what_an_euler_latent_responds_to() {
         use crate::losses::action_response_unexplained;
-        let config = crate::data::CollectConfig {
-            transitions: 400,
-            episode_len: 20,
-            ..crate::data::CollectConfig::new(EnvKind::PointMass, 5)
-        };
-        let data = crate::data::collect(&config, |_| {}).expect("collect");
+        let data = tiny_dataset(EnvKind::PointMass, 5, 400);
         let (dt, k) = (0.02f32, 6);
         // A latent that moves by Euler steps with one input gain `B` (turned and sheared), from
         // a random start at rest in every episode.
@@ -1200,12 +1198,7 @@ mod tests {
 
     #[test]
     fn grouped_batches_take_distinct_nearby_steps_of_one_episode() {
-        let config = crate::data::CollectConfig {
-            transitions: 120,
-            episode_len: 20,
-            ..crate::data::CollectConfig::new(EnvKind::PointMass, 3)
-        };
-        let data = crate::data::collect(&config, |_| {}).expect("collect");
+        let data = tiny_dataset(EnvKind::PointMass, 3, 120);
         let mut rng = step_rng(7, 0);
         let batch = sample_grouped_batch(&data, &mut rng, 24, 4, 6);
         assert_eq!(batch.len(), 24);
@@ -1260,12 +1253,7 @@ mod tests {
         config.loss.action_response_horizon = 1;
         assert!(config.validate().is_ok());
         // A horizon longer than the dataset's episodes is refused before training starts.
-        let collect = crate::data::CollectConfig {
-            transitions: 40,
-            episode_len: 20,
-            ..crate::data::CollectConfig::new(EnvKind::Reacher, 1)
-        };
-        let data = crate::data::collect(&collect, |_| {}).expect("collect");
+        let data = tiny_dataset(EnvKind::Reacher, 1, 40);
         config.batch_group_size = 1;
         config.loss.action_response_horizon = 20;
         let dir = std::env::temp_dir().join(format!("procl-horizon-{}", std::process::id()));

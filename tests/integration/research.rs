@@ -457,20 +457,20 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             c.model.encoder.pairwise_init_scale = 0.0;
         },
     );
+    // Stop 18's pairwise design: pairwise angles started at 0, the angle faded before the cut.
+    let straight_pairwise_faded = |c: &mut TrainConfig| {
+        c.model.encoder.head = pairwise(32);
+        c.model.encoder.pairwise_init_scale = 0.0;
+        c.model.encoder.polar_cut_fade_deg = 15.0;
+    };
     preset_plus(
         "stop18_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
-        &|c| {
-            c.model.encoder.head = pairwise(32);
-            c.model.encoder.pairwise_init_scale = 0.0;
-            c.model.encoder.polar_cut_fade_deg = 15.0;
-        },
+        &straight_pairwise_faded,
     );
     preset_plus(
         "stop18_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15_cut=180",
         &|c| {
-            c.model.encoder.head = pairwise(32);
-            c.model.encoder.pairwise_init_scale = 0.0;
-            c.model.encoder.polar_cut_fade_deg = 15.0;
+            straight_pairwise_faded(c);
             c.model.encoder.polar_cut_deg = Some(180.0);
         },
     );
@@ -485,9 +485,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         &|c| {
             c.method = Method::Pc3;
             c.loss.lambda_r = 0.0;
-            c.model.encoder.head = pairwise(32);
-            c.model.encoder.pairwise_init_scale = 0.0;
-            c.model.encoder.polar_cut_fade_deg = 15.0;
+            straight_pairwise_faded(c);
         },
     );
     // Fetch: the `action-response` cells are the presets of both latent methods, and the
