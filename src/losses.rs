@@ -101,9 +101,9 @@ pub struct LossConfig {
     /// drive, with its own coefficients, instead of extrapolating the velocity `k` steps
     /// (false). The reacher's wrist loses its velocity within about a step (damping 0.01 on an
     /// inertia near 2e-4), so the extrapolation is wrong for its true angles: on the dataset's
-    /// states the fit without the velocity leaves 70-89% of the joint angles' response
-    /// unexplained at `k` = 1-10, with it 5-20% (and 19-79% for the same angles curled into a
-    /// ring).
+    /// states the fit without the velocity leaves 70-90% of the joint angles' response
+    /// unexplained at `k` = 1-10, with it 5-21% (and 18-77% for the same angles curled into a
+    /// ring; `tools/k_step_response.py`).
     #[serde(default)]
     pub action_response_velocity: bool,
 }
