@@ -480,6 +480,9 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus("stop18_preset_cut_fade=15", &|c| {
         c.model.encoder.polar_cut_fade_deg = 15.0
     });
+    preset_plus("stop19_preset_relative_angles", &|c| {
+        c.model.encoder.relative_angles = true
+    });
     preset_plus(
         "stop18_pc3_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
         &|c| {
