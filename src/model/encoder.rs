@@ -110,6 +110,13 @@ pub struct EncoderConfig {
     /// attends to is learned.
     #[serde(default)]
     pub relative_angles: bool,
+    /// With `relative_angles`: keypoint 0 attends only to cells within this distance of the
+    /// centre (image half-widths; 0: anywhere). On the reacher the upper arm reaches 0.39 and
+    /// the fingertip 0.77, so a disc of 0.35 holds the upper arm in every configuration (and
+    /// the forearm only with the wrist folded past 120 degrees): keypoint 0 then measures the
+    /// shoulder, whose angle never meets the cut.
+    #[serde(default)]
+    pub relative_reference_radius: f64,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -144,6 +151,7 @@ impl EncoderConfig {
             polar_cut_fade_deg: 0.0,
             polar_cut_deg: None,
             relative_angles: false,
+            relative_reference_radius: 0.0,
         }
     }
 
@@ -218,6 +226,20 @@ impl EncoderConfig {
                     "measures polar keypoints from keypoint 0; it needs head.polar = true",
                 ))
             }
+            _ if !(self.relative_reference_radius.is_finite()
+                && self.relative_reference_radius >= 0.0) =>
+            {
+                Err(Error::config(
+                    "model.encoder.relative_reference_radius",
+                    format!("{} must be finite and >= 0", self.relative_reference_radius),
+                ))
+            }
+            _ if self.relative_reference_radius > 0.0 && !self.relative_angles => {
+                Err(Error::config(
+                    "model.encoder.relative_reference_radius",
+                    "confines keypoint 0 of relative angles; it needs relative_angles = true",
+                ))
+            }
             EncoderHead::SoftArgmax { keypoints: 1, .. } if self.relative_angles => {
                 Err(Error::config(
                     "model.encoder.relative_angles",
@@ -281,6 +303,7 @@ impl EncoderConfig {
                         upsample: self.keypoint_upsample,
                         cut_fade_rad: self.polar_cut_fade_deg.to_radians(),
                         relative_angles: polar && self.relative_angles,
+                        reference_radius: self.relative_reference_radius,
                         with_cartesian,
                         pairwise_angles,
                         hidden: hidden_layer,
@@ -330,6 +353,8 @@ pub struct KeypointHead {
     /// Polar keypoints 1.. measured from keypoint 0's direction (see
     /// [`EncoderConfig::relative_angles`]).
     relative_angles: bool,
+    /// Keypoint 0's attention is confined to this distance from the centre (0: anywhere).
+    reference_radius: f64,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -508,7 +533,14 @@ impl Encoder {
         };
         let [n, k, rows, cols] = maps.dims();
         let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
-        let attention = softmax(maps.reshape([n, k, rows * cols]) * sharpness, 2); // [n, K, 256]
+        let logits = maps.reshape([n, k, rows * cols]) * sharpness; // [n, K, cells]
+        let logits = if head.relative_angles && head.reference_radius > 0.0 {
+            let device = logits.device();
+            logits + reference_mask(k, rows, cols, head.reference_radius, &device)
+        } else {
+            logits
+        };
+        let attention = softmax(logits, 2); // [n, K, cells]
         // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
         // angle and radius of the cells about the image centre.
         let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
@@ -581,6 +613,18 @@ fn polar_grid(
         angle
     };
     (angle * fade, r_squared.sqrt())
+}
+
+/// `[1, K, rows * cols]`: 0, except a large negative number at keypoint 0's cells further than
+/// `radius` from the centre: added to the attention's logits, it confines keypoint 0 to the
+/// disc (a disc with no cell in it shifts all of keypoint 0's logits alike, which changes
+/// nothing).
+fn reference_mask(k: usize, rows: usize, cols: usize, radius: f64, device: &Device) -> Tensor<3> {
+    let (x, y) = pixel_grid(rows, cols, device);
+    let r = (x.powi_scalar(2) + y.powi_scalar(2)).sqrt(); // [1, 1, cells]
+    let outside = r.greater_elem(radius).float() * -1e4; // [1, 1, cells]
+    let rest = Tensor::zeros([1, k - 1, rows * cols], device);
+    Tensor::cat(vec![outside, rest], 1)
 }
 
 /// Keypoint attention `[n, K, cells]` over cells at `(x, y)` (`[1, 1, cells]` each) -> the
@@ -944,6 +988,36 @@ mod tests {
         let (absolute, _) = polar_grid(x, y, one(1.0), one(0.0), 0.0);
         let absolute = to_vec(absolute);
         assert!((absolute[0] + absolute[1]).abs() < 1e-3, "{absolute:?}");
+    }
+
+    /// Keypoint 0's logits are pushed down outside the disc, and nowhere else.
+    #[test]
+    fn the_reference_keypoint_is_confined_to_a_disc_about_the_centre() {
+        let device = cpu_device();
+        let mask = to_vec(reference_mask(3, 16, 16, 0.35, &device));
+        let (x, y) = pixel_grid(16, 16, &device);
+        let (x, y) = (to_vec(x), to_vec(y));
+        let mut inside = 0;
+        for cell in 0..256 {
+            let r = (x[cell].powi(2) + y[cell].powi(2)).sqrt();
+            let want = if r > 0.35 { -1e4 } else { 0.0 };
+            assert_eq!(mask[cell], want, "cell {cell} at radius {r}");
+            inside += usize::from(r <= 0.35);
+            assert_eq!(mask[256 + cell], 0.0);
+            assert_eq!(mask[512 + cell], 0.0);
+        }
+        // The central 3-cell-radius disc: cells whose centres lie within 0.35 of the centre.
+        assert_eq!(inside, 24);
+        let mut config = EncoderConfig::new(2);
+        config.relative_reference_radius = 0.35;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("needs relative_angles"), "{err}");
+        config.relative_reference_radius = f64::NAN;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(
+            err.contains("model.encoder.relative_reference_radius"),
+            "{err}"
+        );
     }
 
     #[test]

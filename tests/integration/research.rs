@@ -484,6 +484,14 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         c.model.encoder.relative_angles = true
     });
     preset_plus(
+        "stop19_preset_relative_angles_reference_radius=0.35_cut=180",
+        &|c| {
+            c.model.encoder.relative_angles = true;
+            c.model.encoder.relative_reference_radius = 0.35;
+            c.model.encoder.polar_cut_deg = Some(180.0);
+        },
+    );
+    preset_plus(
         "stop18_pc3_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
         &|c| {
             c.method = Method::Pc3;
