@@ -483,6 +483,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus("stop19_preset_relative_angles", &|c| {
         c.model.encoder.relative_angles = true
     });
+    preset_plus("stop19_preset_batch=256", &|c| c.batch_size = 256);
     preset_plus(
         "stop19_preset_relative_angles_reference_radius=0.35_cut=180",
         &|c| {
