@@ -555,6 +555,7 @@ impl Encoder {
                 let angle = expected(angle);
                 let angle = if head.relative_angles {
                     let (x, y) = (grid_x.clone(), grid_y.clone());
+                    // Only keypoint 0 keeps its angle about the fixed axis.
                     let relative = relative_angles(attention.clone(), x, y, head.cut_fade_rad);
                     Tensor::cat(vec![angle.slice([0..n, 0..1]), relative], 1)
                 } else {
@@ -587,9 +588,10 @@ impl Encoder {
 }
 
 /// Cell coordinates `(x, y)` (`[1, 1, cells]` each, about the image centre) -> each cell's
-/// angle from the axis `(cos m, sin m)` (`[1, 1, 1]`, or `[n, 1, 1]` for one axis per sample;
-/// the angle is then `[n, 1, cells]`) (in `(-pi, pi]`, faded to 0 within [`POLAR_FADE_RADIUS`] of the centre,
-/// where the angle is undefined) and its distance from the centre. The expected angle under a
+/// angle from the axis `(cos m, sin m)` and its distance from the centre. The axis is
+/// `[1, 1, 1]`, or `[n, 1, 1]` for one axis per sample (the angle is then `[n, 1, cells]`).
+/// Angles are in `(-pi, pi]`, faded to 0 within [`POLAR_FADE_RADIUS`] of the centre, where the
+/// angle is undefined. The expected angle under a
 /// keypoint's attention then grows with the angle of what it attends to, with no jump unless
 /// that crosses the cut opposite `axis`; with `cut_fade > 0` the angle also fades linearly to 0
 /// over the last `cut_fade` radians before the cut, so it does not jump there either.
@@ -750,7 +752,7 @@ mod tests {
     #[test]
     fn latent_scale_initialisation_standardises_every_head() {
         let device = cpu_device();
-        for (head, relative_angles) in [
+        let heads = [
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 0,
@@ -781,20 +783,11 @@ mod tests {
                 pairwise_angles: false,
             },
             EncoderHead::Mlp { hidden: 8 },
-        ]
-        .map(|head| (head, false))
-        .into_iter()
-        // Polar keypoints 1.. measured from keypoint 0.
-        .chain([(
-            EncoderHead::SoftArgmax {
-                keypoints: 4,
-                hidden: 8,
-                polar: true,
-                with_cartesian: false,
-                pairwise_angles: false,
-            },
-            true,
-        )]) {
+        ];
+        // Every head as it is, then the polar tanh head (`heads[1]`) with keypoints 1..
+        // measured from keypoint 0.
+        let cases = heads.map(|head| (head, false)).into_iter();
+        for (head, relative_angles) in cases.chain([(heads[1], true)]) {
             let config = EncoderConfig {
                 trunk_channels: [4, 4],
                 head,
@@ -809,7 +802,10 @@ mod tests {
                 let column: Vec<f64> = h.iter().skip(dim).step_by(2).map(|&x| x as f64).collect();
                 let mean = column.iter().sum::<f64>() / 24.0;
                 let std = (column.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / 24.0).sqrt();
-                assert!(mean.abs() < 1e-3, "{head:?} dim {dim}: mean {mean}");
+                // The relative head's keypoint angles leave the rescaled output an f32 rounding
+                // of about 1.2e-4 off zero; the other heads stay within 1e-4.
+                let tolerance = if relative_angles { 1e-3 } else { 1e-4 };
+                assert!(mean.abs() < tolerance, "{head:?} dim {dim}: mean {mean}");
                 assert!((std - 2.5).abs() < 1e-3, "{head:?} dim {dim}: std {std}");
             }
         }
