@@ -106,6 +106,14 @@ pub struct LossConfig {
     /// ring; `tools/k_step_response.py`).
     #[serde(default)]
     pub action_response_velocity: bool,
+    /// Diagnostic, not a method: adds `state_supervision_weight * mean ||h_t - s(q_t)||^2`,
+    /// where `s` standardises the dataset's true configuration `q` per coordinate (0: off, the
+    /// paper and every preset). The method itself never sees states. With it on, PD on the
+    /// trained latent measures what the encoder architecture can represent at all: an upper
+    /// bound that separates a head that cannot see a joint from losses that do not ask for it.
+    /// Needs `dim q = dim u`.
+    #[serde(default)]
+    pub state_supervision_weight: f64,
 }
 
 fn default_action_response_horizon() -> usize {
@@ -265,6 +273,7 @@ impl Default for LossConfig {
             action_response_weight: 0.0,
             action_response_horizon: default_action_response_horizon(),
             action_response_velocity: false,
+            state_supervision_weight: 0.0,
         }
     }
 }
@@ -297,6 +306,10 @@ impl LossConfig {
             ("loss.variance_floor", self.variance_floor.unwrap_or(0.0)),
             ("loss.decorrelation_weight", self.decorrelation_weight),
             ("loss.action_response_weight", self.action_response_weight),
+            (
+                "loss.state_supervision_weight",
+                self.state_supervision_weight,
+            ),
         ];
         if let Some(c) = self.risk_latent_std
             && !(c.is_finite() && c > 0.0)
@@ -861,6 +874,61 @@ mod tests {
         // ... and does not change when the whole latent is scaled by 3 (V scales by 9 in both).
         let scaled = expanding(3.0, true);
         assert!((scaled - got).abs() < 1e-3);
+    }
+
+    /// The velocity term of `V` charges a joint for how far one step moves its velocity, so a
+    /// joint whose velocity follows the torque within a step (the reacher's overdamped wrist)
+    /// is charged ten times a double integrator's for the same step: the risk is lowered by
+    /// making that joint faint in `h` (docs/method.md, reacher, stop 20). Without the term
+    /// (`q_v = 0`) neither is charged.
+    #[test]
+    fn the_velocity_term_charges_an_overdamped_joint_and_q_v_0_charges_neither() {
+        let device = cpu_device();
+        let (kp, kd, dt) = (1.0, 0.2, 0.02);
+        let one = |x: f32| t2(&[x], 1, 1, &device);
+        // Row 0 of a batch: at rest at h = 0 under u = 1; v* is row 1's velocity, -2. By hand,
+        // h* = 0 + (1 - 0.2 (-2 - 0)) / 1 = 1.4.
+        let (h_star, v_star) = hindsight_targets(
+            t2(&[0.0, 0.0], 2, 1, &device),
+            t2(&[0.0, -2.0], 2, 1, &device),
+            t2(&[1.0, 0.0], 2, 1, &device),
+            &[1, 0],
+            kp,
+            kd,
+        );
+        let (h_star, v_star) = (to_vec(h_star)[0], to_vec(v_star)[0]);
+        assert!(
+            (h_star - 1.4).abs() < 1e-6 && v_star == -2.0,
+            "{h_star} {v_star}"
+        );
+        // V(z_now - z*) = 1.4^2 + q_v 2^2 = 1.96 + 4 q_v.
+        // Overdamped: the velocity jumps to 1.5 in the step, h_next = 0.02 * 1.5 = 0.03:
+        //   V(z_next - z*) = 1.37^2 + q_v 3.5^2 = 1.8769 + 12.25 q_v;
+        //   at q_v = 0.1 the rise is 0.7419, over dt: 37.095.
+        // Double integrator: v_next = dt a = 0.2, h_next = 0.004:
+        //   V(z_next - z*) = 1.396^2 + q_v 2.2^2 = 1.948816 + 4.84 q_v;
+        //   at q_v = 0.1 the rise is 0.072816, over dt: 3.6408.
+        let risk = |h_next: f32, v_next: f32, q_v: f64| {
+            scalar(lyapunov_risk(
+                (one(0.0), one(0.0)),
+                (one(h_next), one(v_next)),
+                (one(h_star), one(v_star)),
+                1.0,
+                q_v,
+                dt,
+                false,
+            ))
+        };
+        let overdamped = risk(0.03, 1.5, 0.1);
+        let double_integrator = risk(0.004, 0.2, 0.1);
+        assert!((overdamped - 37.095).abs() < 1e-3, "{overdamped}");
+        assert!(
+            (double_integrator - 3.6408).abs() < 1e-3,
+            "{double_integrator}"
+        );
+        // Both steps move h toward h*, so without the velocity term neither is charged.
+        assert_eq!(risk(0.03, 1.5, 0.0), 0.0);
+        assert_eq!(risk(0.004, 0.2, 0.0), 0.0);
     }
 
     #[test]

@@ -611,6 +611,17 @@ pub fn loss_inputs(
     step: u64,
     device: &Device,
 ) -> LossInputs {
+    loss_inputs_and_batch(model, data, config, step, device).0
+}
+
+/// [`loss_inputs`] and the batch's `(episode, t)` of each `h_t`.
+fn loss_inputs_and_batch(
+    model: &ProclModel,
+    data: &Dataset,
+    config: &TrainConfig,
+    step: u64,
+    device: &Device,
+) -> (LossInputs, Vec<(usize, usize)>) {
     let mut rng = step_rng(config.seed, step);
     let n = config.batch_size;
     let du = data.action_dim();
@@ -646,7 +657,7 @@ pub fn loss_inputs(
     };
     let mut permutation: Vec<usize> = (0..n).collect();
     permutation.shuffle(&mut rng);
-    LossInputs {
+    let inputs = LossInputs {
         h_prev: h.clone().narrow(0, 0, n),
         h_now: h.clone().narrow(0, n, n),
         h_next: h.narrow(0, 2 * n, n),
@@ -659,6 +670,49 @@ pub fn loss_inputs(
         ),
         permutation,
         ahead,
+    };
+    (inputs, batch)
+}
+
+/// The standardised true configuration `s(q) = (q - mean) / std` per coordinate, over every
+/// state of a dataset: the target of the diagnostic [`LossConfig::state_supervision_weight`].
+struct StateStandardiser {
+    mean: Vec<f64>,
+    std: Vec<f64>,
+}
+
+impl StateStandardiser {
+    fn new(data: &Dataset) -> Self {
+        let dq = data.config_dim();
+        let count = (data.episodes() * (data.steps() + 1)).max(1) as f64;
+        let column = |i: usize| data.states.index_axis(ndarray::Axis(2), i);
+        let mean: Vec<f64> = (0..dq)
+            .map(|i| column(i).iter().map(|&x| x as f64).sum::<f64>() / count)
+            .collect();
+        let std = (0..dq)
+            .map(|i| {
+                let var = column(i)
+                    .iter()
+                    .map(|&x| (x as f64 - mean[i]).powi(2))
+                    .sum::<f64>()
+                    / count;
+                // A joint that never moves is held at 0 rather than divided by 0.
+                var.sqrt().max(1e-6)
+            })
+            .collect();
+        Self { mean, std }
+    }
+
+    /// `s(q_t)` of each sample, `[n, dq]`.
+    fn targets(&self, data: &Dataset, batch: &[(usize, usize)], device: &Device) -> Tensor<2> {
+        let dq = self.mean.len();
+        let values: Vec<f32> = batch
+            .iter()
+            .flat_map(|&(e, t)| data.config(e, t))
+            .enumerate()
+            .map(|(k, q)| ((q - self.mean[k % dq]) / self.std[k % dq]) as f32)
+            .collect();
+        Tensor::from_data(TensorData::new(values, [batch.len(), dq]), device)
     }
 }
 
@@ -743,6 +797,8 @@ struct ProclObjective<'a> {
     run: &'a RunPaths,
     device: &'a Device,
     search: Option<LatentOrienter>,
+    /// The diagnostic state supervision's target, when its weight is above 0.
+    state_target: Option<StateStandardiser>,
 }
 
 impl Objective for ProclObjective<'_> {
@@ -768,12 +824,27 @@ impl Objective for ProclObjective<'_> {
 
     fn loss(&mut self, model: &ProclModel, step: u64) -> (Tensor<1>, StepValues) {
         let dt = self.data.meta.control_dt_s;
-        let inputs = loss_inputs(model, self.data, self.config, step, self.device);
+        let (inputs, batch) =
+            loss_inputs_and_batch(model, self.data, self.config, step, self.device);
         if let Some(search) = self.search.as_mut() {
             search.observe(&inputs, &self.config.loss, dt);
         }
+        let supervision = self.state_target.as_ref().map(|target| {
+            let error = inputs.h_now.clone() - target.targets(self.data, &batch, self.device);
+            error.powf_scalar(2.0).mean() * self.config.loss.state_supervision_weight
+        });
         let terms = procl_loss(&self.config.loss_at(step), &model.dynamics, inputs, dt);
-        (terms.total.clone(), terms.values().into())
+        let mut values: StepValues = terms.values().into();
+        let total = match supervision {
+            Some(term) => {
+                let total = terms.total + term;
+                // The logged total is the loss minimised, the diagnostic term included.
+                values.values[0] = crate::model::read_scalars(&[&total])[0];
+                total
+            }
+            None => terms.total,
+        };
+        (total, values)
     }
 
     fn after_update(&mut self, model: ProclModel, step: u64) -> Result<ProclModel> {
@@ -826,6 +897,16 @@ pub fn train(
             ),
         ));
     }
+    if config.loss.state_supervision_weight > 0.0 && data.config_dim() != data.action_dim() {
+        return Err(Error::config(
+            "loss.state_supervision_weight",
+            format!(
+                "needs dim q = dim u; the dataset has {} and {}",
+                data.config_dim(),
+                data.action_dim()
+            ),
+        ));
+    }
     let device = &device.clone().autodiff();
     match &config.nvae {
         Some(nvae) => {
@@ -842,6 +923,8 @@ pub fn train(
                 device,
                 search: (config.orientation_search_every > 0)
                     .then(|| LatentOrienter::new(config.orientation_criterion, data.action_dim())),
+                state_target: (config.loss.state_supervision_weight > 0.0)
+                    .then(|| StateStandardiser::new(data)),
             };
             run_training(objective, model, config, run, resume, device, &mut progress)
         }
@@ -1220,6 +1303,42 @@ mod tests {
         // A window longer than the episode is cut to it.
         let long = sample_grouped_batch(&data, &mut rng, 8, 4, 500);
         assert!(long.iter().all(|&(_, t)| (1..20).contains(&t)));
+    }
+
+    #[test]
+    fn state_supervision_targets_are_the_standardised_configuration() {
+        let data = tiny_dataset(EnvKind::Reacher, 3, 200);
+        let device = Device::default();
+        let target = StateStandardiser::new(&data);
+        let every: Vec<(usize, usize)> = (0..data.episodes())
+            .flat_map(|e| (0..=data.steps()).map(move |t| (e, t)))
+            .collect();
+        let s = crate::model::to_vec(target.targets(&data, &every, &device));
+        let dq = data.config_dim();
+        assert_eq!(s.len(), every.len() * dq);
+        for i in 0..dq {
+            let column: Vec<f64> = s.iter().skip(i).step_by(dq).map(|&x| x as f64).collect();
+            let mean = column.iter().sum::<f64>() / column.len() as f64;
+            let var = column.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / column.len() as f64;
+            assert!(mean.abs() < 1e-4, "coordinate {i}: mean {mean}");
+            assert!((var - 1.0).abs() < 1e-3, "coordinate {i}: variance {var}");
+        }
+        // One sample by hand: the wrist of episode 2, step 7.
+        let q = data.config(2, 7)[1];
+        let wrist: Vec<f64> = every.iter().map(|&(e, t)| data.config(e, t)[1]).collect();
+        let mean = wrist.iter().sum::<f64>() / wrist.len() as f64;
+        let std =
+            (wrist.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / wrist.len() as f64).sqrt();
+        let got = crate::model::to_vec(target.targets(&data, &[(2, 7)], &device))[1] as f64;
+        assert!(
+            (got - (q - mean) / std).abs() < 1e-4,
+            "{got} vs {}",
+            (q - mean) / std
+        );
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        config.loss.state_supervision_weight = -1.0;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("loss.state_supervision_weight"), "{err}");
     }
 
     #[test]
