@@ -258,15 +258,21 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     assert_eq!(floor.loss.variance_floor, Some(1.0));
     assert_eq!(floor.steps, 1200);
     assert_eq!(floor.model.encoder.init_latent_std, Some(1.0));
-    // The reacher's procl preset is the design the stop-15 cell measured.
+    // The reacher's procl preset is the design the stop-20 cell measured: stop 15's with no
+    // velocity term in `V` and ten times its risk weight.
     let cell = |name: &str| {
         let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
         cell.clone()
     };
     let new_design = cell("stop15_polar_tanh-head_action-response_risk_latent_std=1_kp=1");
+    let stop20_design = cell("stop20_preset_q_v=0_lambda_r=1");
     let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-    preset.steps = new_design.steps;
-    assert_eq!(preset, new_design);
+    preset.steps = stop20_design.steps;
+    assert_eq!(preset, stop20_design);
+    let mut expected = new_design.clone();
+    (expected.loss.q_v, expected.loss.lambda_r) = (0.0, 1.0);
+    assert_eq!(expected, stop20_design);
+    // PC3 has no risk: its preset is still the stop-15 cell's.
     let mut pc3_preset = TrainConfig::preset(Preset::Procl, Method::Pc3, EnvKind::Reacher);
     pc3_preset.steps = 1200;
     assert_eq!(
@@ -282,6 +288,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     undone.orientation_criterion = procl::orientation::OrientationCriterion::Risk;
     undone.loss.risk_latent_std = None;
     (undone.loss.kp, undone.loss.kd, undone.loss.lambda_r) = (10.0, 2.0, 10.0);
+    undone.loss.q_v = 0.1;
     undone.model.encoder.head = keypoint_head(16, 32, false);
     assert_eq!(undone, stop13_design);
     let stop14 = |name: &str| {
@@ -484,6 +491,46 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         c.model.encoder.relative_angles = true
     });
     preset_plus("stop19_preset_batch=256", &|c| c.batch_size = 256);
+    // Stop 20: the risk's velocity term, and the diagnostic state supervision.
+    preset_plus("stop20_preset_q_v=0", &|c| c.loss.q_v = 0.0);
+    preset_plus("stop20_preset_q_v=0_lambda_r=3", &|c| {
+        (c.loss.q_v, c.loss.lambda_r) = (0.0, 3.0)
+    });
+    let supervised = |c: &mut TrainConfig, weight: f64| {
+        c.orientation_search_every = 0;
+        c.loss.state_supervision_weight = weight;
+    };
+    preset_plus("stop20_stop15_preset_state_supervision=10", &|c| {
+        supervised(c, 10.0)
+    });
+    preset_plus(
+        "stop20_stop15_preset_state_supervision=10_pairwise_angles",
+        &|c| {
+            supervised(c, 10.0);
+            c.model.encoder.head = pairwise(32);
+        },
+    );
+    preset_plus(
+        "stop20_stop15_preset_state_supervision=10_lambda_r=0",
+        &|c| {
+            supervised(c, 10.0);
+            c.loss.lambda_r = 0.0;
+        },
+    );
+    let supervision_only = |c: &mut TrainConfig| {
+        supervised(c, 1.0);
+        (c.loss.lambda_pc3, c.loss.lambda_r) = (0.0, 0.0);
+        c.loss.variance_floor = Some(0.0);
+    };
+    preset_plus("stop20_state_supervision_only", &|c| supervision_only(c));
+    preset_plus("stop20_state_supervision_only_pairwise_angles", &|c| {
+        supervision_only(c);
+        c.model.encoder.head = pairwise(32);
+    });
+    preset_plus("stop20_state_supervision_only_mlp_head", &|c| {
+        supervision_only(c);
+        c.model.encoder.head = procl::model::EncoderHead::Mlp { hidden: 256 };
+    });
     preset_plus(
         "stop19_preset_relative_angles_reference_radius=0.35_cut=180",
         &|c| {
