@@ -496,6 +496,10 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus("stop20_preset_q_v=0_lambda_r=3", &|c| {
         (c.loss.q_v, c.loss.lambda_r) = (0.0, 3.0)
     });
+    preset_plus("stop20_preset_q_v=0_lambda_r=1_cut=180", &|c| {
+        (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+        c.model.encoder.polar_cut_deg = Some(180.0);
+    });
     let supervised = |c: &mut TrainConfig, weight: f64| {
         c.orientation_search_every = 0;
         c.loss.state_supervision_weight = weight;
