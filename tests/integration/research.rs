@@ -521,6 +521,14 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             c.loss.lambda_r = 0.0;
         },
     );
+    preset_plus(
+        "stop20_stop15_preset_state_supervision=10_lambda_r=0_pairwise_angles",
+        &|c| {
+            supervised(c, 10.0);
+            (c.loss.lambda_r, c.loss.q_v) = (0.0, 0.0);
+            c.model.encoder.head = pairwise(32);
+        },
+    );
     let supervision_only = |c: &mut TrainConfig| {
         supervised(c, 1.0);
         (c.loss.lambda_pc3, c.loss.lambda_r) = (0.0, 0.0);
