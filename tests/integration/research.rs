@@ -496,6 +496,13 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus("stop20_preset_q_v=0_lambda_r=3", &|c| {
         (c.loss.q_v, c.loss.lambda_r) = (0.0, 3.0)
     });
+    preset_plus(
+        "stop20_preset_q_v=0_lambda_r=1_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
+        &|c| {
+            (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+            straight_pairwise_faded(c);
+        },
+    );
     preset_plus("stop20_preset_q_v=0_lambda_r=1_cut=180", &|c| {
         (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
         c.model.encoder.polar_cut_deg = Some(180.0);
