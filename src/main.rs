@@ -654,13 +654,21 @@ fn print_report(report: &procl::eval::ReachReport) {
             _ => "-".into(),
         };
         println!(
-            "{:<26} {:>7.0}% {:>11.4} +- {:<8.4} {:>18}",
+            "{:<26} {:>7.1}% {:>11.4} +- {:<8.4} {:>18}",
             m.method,
             100.0 * m.success_rate,
             m.final_mean,
             m.final_std,
             time
         );
+    }
+    for m in &report.methods {
+        if let (Some(mean), Some(std)) = (m.final_fingertip_mean_m, m.final_fingertip_std_m) {
+            println!(
+                "{:<26} final fingertip distance {mean:.4} +- {std:.4} m",
+                m.method
+            );
+        }
     }
 }
 

@@ -138,6 +138,12 @@ pub trait Env: Send {
             .sum::<f64>()
             .sqrt()
     }
+    /// Distance (m) between the fingertip's positions at two configurations, for an env whose
+    /// configuration distance is not already one in metres: the reacher (spec.md 1.2 reports it
+    /// beside the joint-space distance). `None` elsewhere.
+    fn fingertip_distance_m(&self, _a: &[f64], _b: &[f64]) -> Option<f64> {
+        None
+    }
 
     /// Starts an episode from a seeded random configuration at rest.
     fn reset(&mut self, seed: u64) -> Result<()> {

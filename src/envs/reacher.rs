@@ -237,11 +237,28 @@ impl Env for Reacher {
         let shapes = self.shapes();
         self.canvas.render(&shapes, frame);
     }
+    fn fingertip_distance_m(&self, a: &[f64], b: &[f64]) -> Option<f64> {
+        Some(self.fingertip_distance(a, b))
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fingertip_distance_is_measured_between_the_fingertips_in_metres() {
+        let env = Reacher::new(ReacherConfig::default());
+        // Straight along +x the fingertip is at (0.24, 0); with the wrist at 90 degrees it is
+        // at (0.12, 0.12): 0.12 sqrt(2) m apart.
+        let (straight, bent) = ([0.0, 0.0], [0.0, std::f64::consts::FRAC_PI_2]);
+        let d = env.fingertip_distance_m(&straight, &bent).unwrap();
+        assert!((d - 0.12 * 2f64.sqrt()).abs() < 1e-12, "{d}");
+        // Turning the shoulder by pi with the arm straight moves it by the arm's full span.
+        let d = env.fingertip_distance_m(&straight, &[std::f64::consts::PI, 0.0]);
+        assert!((d.unwrap() - 0.48).abs() < 1e-12);
+        assert_eq!(env.fingertip_distance_m(&bent, &bent), Some(0.0));
+    }
 
     /// spec.md 1.2 (MuJoCo 3.17; MuJoCo 4.0 agrees, tools/mujoco_reference.py).
     #[test]

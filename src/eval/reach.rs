@@ -82,6 +82,9 @@ pub struct EpisodeRecord {
     pub goal_latent: Vec<f64>,
     /// The goal's true configuration.
     pub goal_config: Vec<f64>,
+    /// The fingertip's distance to the goal's after the last step (m; the reacher only, see
+    /// [`crate::envs::Env::fingertip_distance_m`]).
+    pub final_fingertip_distance_m: Option<f64>,
     /// Frames, when recorded (for the GIF), and the goal image.
     #[serde(skip)]
     pub frames: Vec<Frame>,
@@ -123,6 +126,7 @@ pub fn run_episode(
             record.frames.push(frame);
         }
         if step == horizon {
+            record.final_fingertip_distance_m = sim.fingertip_distance_m(&state.q, &goal.q);
             break;
         }
         policy.act(&frame, &state, &mut u);
@@ -154,6 +158,14 @@ pub struct MethodSummary {
     pub final_configs: Vec<Vec<f64>>,
     pub final_mean: f64,
     pub final_std: f64,
+    /// The reacher's final fingertip distance to the goal's per episode (m), and its mean and
+    /// std; empty and absent for the other envs.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub final_fingertip_distances_m: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub final_fingertip_mean_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub final_fingertip_std_m: Option<f64>,
     pub success_rate: f64,
     /// Control time per step (encode one frame + PD), microseconds; absent for the oracle.
     pub control_time_us_p50: Option<f64>,
@@ -203,6 +215,11 @@ pub fn summarise(
         .filter_map(|e| e.distances.last().copied())
         .collect();
     let (final_mean, final_std) = mean_std(&finals);
+    let fingertip: Vec<f64> = episodes
+        .iter()
+        .filter_map(|e| e.final_fingertip_distance_m)
+        .collect();
+    let fingertip_mean_std = (!fingertip.is_empty()).then(|| mean_std(&fingertip));
     let successes = finals
         .iter()
         .filter(|&&d| d < config.success_threshold)
@@ -226,6 +243,9 @@ pub fn summarise(
             .collect(),
         final_mean,
         final_std,
+        final_fingertip_mean_m: fingertip_mean_std.map(|(mean, _)| mean),
+        final_fingertip_std_m: fingertip_mean_std.map(|(_, std)| std),
+        final_fingertip_distances_m: fingertip,
         success_rate: successes as f64 / finals.len().max(1) as f64,
         control_time_us_p50: timed.then(|| percentile(&times, 0.5)),
         control_time_us_p99: timed.then(|| percentile(&times, 0.99)),

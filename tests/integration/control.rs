@@ -51,6 +51,20 @@ fn oracle_reaches_every_goal_in_every_env() {
                 .fold(0.0, f64::max);
             assert!(gap < protocol.success_threshold, "{env} episode {k}: {gap}");
         }
+        // The reacher also reports its fingertip's final distance in metres (spec.md 1.2),
+        // one per episode; the other envs' distances are already positions in metres.
+        if env == EnvKind::Reacher {
+            assert_eq!(oracle.final_fingertip_distances_m.len(), tasks.len());
+            // A joint-space error e moves the fingertip by at most 0.36 e m (0.24 m from the
+            // shoulder, 0.12 m from the wrist), and the oracle ends within a tenth of the
+            // threshold.
+            let mean = oracle.final_fingertip_mean_m.unwrap();
+            let bound = 0.36 * 0.1 * protocol.success_threshold;
+            assert!((0.0..bound).contains(&mean), "{mean}");
+        } else {
+            assert!(oracle.final_fingertip_distances_m.is_empty(), "{env}");
+            assert_eq!(oracle.final_fingertip_mean_m, None, "{env}");
+        }
     }
 }
 
