@@ -57,8 +57,15 @@ pub enum EncoderHead {
 pub struct EncoderConfig {
     /// Dimension of `h` (= action dimension du).
     pub latent_dim: usize,
-    /// Channels of the two stride-2 trunk convs (64 -> 32 -> 16 pixels).
+    /// Channels of the two trunk convs (64 -> 32 -> 16 pixels at the default strides).
     pub trunk_channels: [usize; 2],
+    /// Stride of the trunk's second conv: 2 (16x16 keypoint cells of 4 pixels) or, with a
+    /// soft-argmax head, 1 (32x32 cells of 2 pixels, four times the second conv's work). Unlike
+    /// `keypoint_upsample`, which interpolates the 16x16 maps, the finer cells see the image at
+    /// that resolution: at the reacher's folded wrist the fingertip lies 4-12 pixels from the
+    /// centre, one to three coarse cells.
+    #[serde(default = "default_trunk_second_stride")]
+    pub trunk_second_stride: usize,
     /// The head.
     pub head: EncoderHead,
     /// Initial sharpness `beta` of the soft-argmax (`softmax(beta * maps)`), learned from there.
@@ -131,6 +138,10 @@ fn default_keypoint_upsample() -> usize {
     1
 }
 
+fn default_trunk_second_stride() -> usize {
+    2
+}
+
 impl EncoderConfig {
     /// Default encoder for `h` in R^du: soft-argmax head with 16 keypoints.
     pub fn new(latent_dim: usize) -> Self {
@@ -147,6 +158,7 @@ impl EncoderConfig {
             keypoint_sharpness: 1.0,
             init_latent_std: None,
             keypoint_upsample: default_keypoint_upsample(),
+            trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
             polar_cut_fade_deg: 0.0,
             polar_cut_deg: None,
@@ -183,6 +195,21 @@ impl EncoderConfig {
                 "model.encoder.keypoint_upsample",
                 format!("{} must be 1, 2, 3 or 4", self.keypoint_upsample),
             ));
+        }
+        match (self.trunk_second_stride, self.head) {
+            (2, _) | (1, EncoderHead::SoftArgmax { .. }) => {}
+            (1, EncoderHead::Mlp { .. }) => {
+                return Err(Error::config(
+                    "model.encoder.trunk_second_stride",
+                    "1 needs the soft-argmax head (the MLP head's layers expect 16x16 maps)",
+                ));
+            }
+            (stride, _) => {
+                return Err(Error::config(
+                    "model.encoder.trunk_second_stride",
+                    format!("{stride} must be 1 or 2"),
+                ));
+            }
         }
         if self.latent_dim == 0 || self.trunk_channels.contains(&0) {
             return Err(Error::config(
@@ -322,7 +349,7 @@ impl EncoderConfig {
         };
         Encoder {
             conv1: conv(3, c1, 4, 2, 1),
-            conv2: conv(c1, c2, 3, 2, 1),
+            conv2: conv(c1, c2, 3, self.trunk_second_stride, 1),
             mlp,
             keypoints,
             latent_transform: super::transform_param(self.latent_dim, device),
@@ -509,7 +536,7 @@ impl Encoder {
     /// The head's output before the orientation `Q`.
     fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
-        let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16]
+        let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16], or 32x32 at stride 1
         if let Some(head) = &self.mlp {
             let x = relu(head.conv3.forward(x)); // [n, 32, 8, 8]
             let n = x.dims()[0];
@@ -520,7 +547,7 @@ impl Encoder {
             .keypoints
             .as_ref()
             .expect("encoder has one head by construction");
-        let maps = head.features.forward(x); // [n, K, 16, 16]
+        let maps = head.features.forward(x); // [n, K, 16, 16] (32x32 at stride 1)
         let maps = if head.upsample > 1 {
             let [_, _, rows, cols] = maps.dims();
             let size = [rows * head.upsample, cols * head.upsample];
@@ -834,6 +861,33 @@ mod tests {
         let fine = reinit_params(config.init(&device), 3);
         config.keypoint_upsample = 1;
         let coarse = reinit_params(config.init(&device), 3);
+        // A stride-1 second conv has the same weights' shapes and attends over 32x32 cells.
+        config.trunk_second_stride = 1;
+        let strided = reinit_params(config.init(&device), 3);
+        let h_strided = to_vec(strided.forward(frames(&device)));
+        assert_eq!(h_strided.len(), 48);
+        assert!(h_strided.iter().all(|x| x.is_finite()));
+        assert!(
+            h_strided
+                .iter()
+                .zip(&to_vec(coarse.forward(frames(&device))))
+                .any(|(a, b)| (a - b).abs() > 1e-6)
+        );
+        config.trunk_second_stride = 3;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("model.encoder.trunk_second_stride"), "{err}");
+        config.trunk_second_stride = 1;
+        config.head = EncoderHead::Mlp { hidden: 8 };
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("model.encoder.trunk_second_stride"), "{err}");
+        config.head = EncoderHead::SoftArgmax {
+            keypoints: 4,
+            hidden: 8,
+            polar: true,
+            with_cartesian: false,
+            pairwise_angles: false,
+        };
+        config.trunk_second_stride = 2;
         // Same weights, different attention grids: finite encodings that differ.
         let (h_fine, h_coarse) = (
             to_vec(fine.forward(frames(&device))),
