@@ -880,14 +880,6 @@ mod tests {
         config.head = EncoderHead::Mlp { hidden: 8 };
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("model.encoder.trunk_second_stride"), "{err}");
-        config.head = EncoderHead::SoftArgmax {
-            keypoints: 4,
-            hidden: 8,
-            polar: true,
-            with_cartesian: false,
-            pairwise_angles: false,
-        };
-        config.trunk_second_stride = 2;
         // Same weights, different attention grids: finite encodings that differ.
         let (h_fine, h_coarse) = (
             to_vec(fine.forward(frames(&device))),
