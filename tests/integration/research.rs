@@ -507,6 +507,31 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
         c.model.encoder.polar_cut_deg = Some(180.0);
     });
+    // Stop 21: the stop-20 preset at twice the steps, and PC3 (no risk) with stop 18's
+    // pairwise design.
+    preset_plus("stop21_preset_steps=2400", &|c| {
+        (c.loss.q_v, c.loss.lambda_r, c.steps) = (0.0, 1.0, 2400)
+    });
+    preset_plus(
+        "stop21_pc3_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
+        &|c| {
+            // `q_v` stays the paper's, as in the PC3 preset; it has no effect without the risk.
+            c.loss.lambda_r = 0.0;
+            straight_pairwise_faded(c);
+        },
+    );
+    preset_plus("stop21_preset_trunk_second_stride=1", &|c| {
+        (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+        c.model.encoder.trunk_second_stride = 1;
+    });
+    preset_plus(
+        "stop21_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15_trunk_second_stride=1",
+        &|c| {
+            (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+            straight_pairwise_faded(c);
+            c.model.encoder.trunk_second_stride = 1;
+        },
+    );
     let supervised = |c: &mut TrainConfig, weight: f64| {
         c.orientation_search_every = 0;
         c.loss.state_supervision_weight = weight;
@@ -534,6 +559,15 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             supervised(c, 10.0);
             (c.loss.lambda_r, c.loss.q_v) = (0.0, 0.0);
             c.model.encoder.head = pairwise(32);
+        },
+    );
+    preset_plus(
+        "stop21_state_supervision=10_lambda_r=0_pairwise_angles_trunk_second_stride=1",
+        &|c| {
+            supervised(c, 10.0);
+            (c.loss.lambda_r, c.loss.q_v) = (0.0, 0.0);
+            c.model.encoder.head = pairwise(32);
+            c.model.encoder.trunk_second_stride = 1;
         },
     );
     let supervision_only = |c: &mut TrainConfig| {
