@@ -507,19 +507,10 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
         c.model.encoder.polar_cut_deg = Some(180.0);
     });
-    // Stop 21: the stop-20 preset at twice the steps, and PC3 (no risk) with stop 18's
-    // pairwise design.
+    // Stop 21: the stop-20 preset at twice the steps, and 32x32 keypoint cells.
     preset_plus("stop21_preset_steps=2400", &|c| {
         (c.loss.q_v, c.loss.lambda_r, c.steps) = (0.0, 1.0, 2400)
     });
-    preset_plus(
-        "stop21_pc3_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
-        &|c| {
-            // `q_v` stays the paper's, as in the PC3 preset; it has no effect without the risk.
-            c.loss.lambda_r = 0.0;
-            straight_pairwise_faded(c);
-        },
-    );
     preset_plus("stop21_preset_trunk_second_stride=1", &|c| {
         (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
         c.model.encoder.trunk_second_stride = 1;
