@@ -152,13 +152,6 @@ impl Reacher {
         (wrist, tip)
     }
 
-    /// Fingertip distance (m) between two configurations.
-    pub fn fingertip_distance(&self, a: &[f64], b: &[f64]) -> f64 {
-        let (_, ta) = self.forward_kinematics([a[0], a[1]]);
-        let (_, tb) = self.forward_kinematics([b[0], b[1]]);
-        ((ta[0] - tb[0]).powi(2) + (ta[1] - tb[1]).powi(2)).sqrt()
-    }
-
     fn shapes(&self) -> [Shape; 3] {
         let c = &self.config;
         let (wrist, tip) = self.forward_kinematics(self.q);
@@ -238,7 +231,9 @@ impl Env for Reacher {
         self.canvas.render(&shapes, frame);
     }
     fn fingertip_distance_m(&self, a: &[f64], b: &[f64]) -> Option<f64> {
-        Some(self.fingertip_distance(a, b))
+        let (_, ta) = self.forward_kinematics([a[0], a[1]]);
+        let (_, tb) = self.forward_kinematics([b[0], b[1]]);
+        Some(((ta[0] - tb[0]).powi(2) + (ta[1] - tb[1]).powi(2)).sqrt())
     }
 }
 
