@@ -269,8 +269,9 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
     preset.steps = stop20_design.steps;
     assert_eq!(preset, stop20_design);
+    let stop20_preset = |c: &mut TrainConfig| (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
     let mut expected = new_design.clone();
-    (expected.loss.q_v, expected.loss.lambda_r) = (0.0, 1.0);
+    stop20_preset(&mut expected);
     assert_eq!(expected, stop20_design);
     // PC3 has no risk: its preset is still the stop-15 cell's.
     let mut pc3_preset = TrainConfig::preset(Preset::Procl, Method::Pc3, EnvKind::Reacher);
@@ -499,26 +500,27 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus(
         "stop20_preset_q_v=0_lambda_r=1_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
         &|c| {
-            (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+            stop20_preset(c);
             straight_pairwise_faded(c);
         },
     );
     preset_plus("stop20_preset_q_v=0_lambda_r=1_cut=180", &|c| {
-        (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+        stop20_preset(c);
         c.model.encoder.polar_cut_deg = Some(180.0);
     });
     // Stop 21: the stop-20 preset at twice the steps, and 32x32 keypoint cells.
     preset_plus("stop21_preset_steps=2400", &|c| {
-        (c.loss.q_v, c.loss.lambda_r, c.steps) = (0.0, 1.0, 2400)
+        stop20_preset(c);
+        c.steps = 2400;
     });
     preset_plus("stop21_preset_trunk_second_stride=1", &|c| {
-        (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+        stop20_preset(c);
         c.model.encoder.trunk_second_stride = 1;
     });
     preset_plus(
         "stop21_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15_trunk_second_stride=1",
         &|c| {
-            (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
+            stop20_preset(c);
             straight_pairwise_faded(c);
             c.model.encoder.trunk_second_stride = 1;
         },
@@ -544,20 +546,20 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             c.loss.lambda_r = 0.0;
         },
     );
+    // PC3's terms and the regression with the pairwise head: the supervised ceiling.
+    let supervised_pc3_pairwise = |c: &mut TrainConfig| {
+        supervised(c, 10.0);
+        (c.loss.lambda_r, c.loss.q_v) = (0.0, 0.0);
+        c.model.encoder.head = pairwise(32);
+    };
     preset_plus(
         "stop20_stop15_preset_state_supervision=10_lambda_r=0_pairwise_angles",
-        &|c| {
-            supervised(c, 10.0);
-            (c.loss.lambda_r, c.loss.q_v) = (0.0, 0.0);
-            c.model.encoder.head = pairwise(32);
-        },
+        &supervised_pc3_pairwise,
     );
     preset_plus(
         "stop21_state_supervision=10_lambda_r=0_pairwise_angles_trunk_second_stride=1",
         &|c| {
-            supervised(c, 10.0);
-            (c.loss.lambda_r, c.loss.q_v) = (0.0, 0.0);
-            c.model.encoder.head = pairwise(32);
+            supervised_pc3_pairwise(c);
             c.model.encoder.trunk_second_stride = 1;
         },
     );
