@@ -239,6 +239,7 @@ impl TrainConfig {
                 polar: true,
                 with_cartesian: false,
                 pairwise_angles: false,
+                linear_base: false,
             };
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.variance_floor = Some(1.0);

@@ -49,6 +49,17 @@ pub enum EncoderHead {
         /// the fingertip's own angle (shoulder + wrist / 2) sweeps more than a full turn.
         #[serde(default)]
         pairwise_angles: bool,
+        /// With `polar`, `pairwise_angles` and a tanh layer: `h_0` is one linear map of the
+        /// keypoints' angles about the centre (the base coordinate), and `h_1..` come from the
+        /// tanh layer on the keypoints' radii and pairwise angles only, inputs that do not change
+        /// when the whole scene turns about the centre. For a planar arm whose base joint sits
+        /// at the centre that is the joint structure: the base angle turns every link, and the
+        /// outer joint shows in the angles between links (the reacher's wrist is twice the
+        /// angle between elbow and fingertip). With one tanh layer on every input, CPC curls
+        /// the shoulder's 320 degrees into a U whose ends a fixed PD gain cannot follow
+        /// (stops 17-21); a linear map of angles cannot curl.
+        #[serde(default)]
+        linear_base: bool,
     },
 }
 
@@ -154,6 +165,7 @@ impl EncoderConfig {
                 polar: false,
                 with_cartesian: false,
                 pairwise_angles: false,
+                linear_base: false,
             },
             keypoint_sharpness: 1.0,
             init_latent_std: None,
@@ -245,6 +257,27 @@ impl EncoderConfig {
                 "model.encoder.head.pairwise_angles",
                 "adds the angles between polar keypoints; it needs polar = true",
             )),
+            EncoderHead::SoftArgmax {
+                linear_base: true,
+                polar,
+                pairwise_angles,
+                with_cartesian,
+                hidden,
+                ..
+            } if !polar
+                || !pairwise_angles
+                || with_cartesian
+                || hidden == 0
+                || self.relative_angles
+                || self.latent_dim < 2 =>
+            {
+                Err(Error::config(
+                    "model.encoder.head.linear_base",
+                    "splits h into a base angle and the rest; it needs polar = true, \
+                     pairwise_angles = true, hidden > 0, latent_dim >= 2, and neither \
+                     with_cartesian nor relative_angles",
+                ))
+            }
             EncoderHead::SoftArgmax { polar: false, .. } | EncoderHead::Mlp { .. }
                 if self.relative_angles =>
             {
@@ -301,15 +334,21 @@ impl EncoderConfig {
                 polar,
                 with_cartesian,
                 pairwise_angles,
+                linear_base,
             } => {
                 let with_cartesian = polar && with_cartesian;
                 let pairwise_angles = polar && pairwise_angles;
+                let linear_base = pairwise_angles && linear_base && hidden > 0;
+                // The linear base takes the K angles; the tanh layer gets everything else.
                 let features = if with_cartesian { 4 } else { 2 } * keypoints
+                    - if linear_base { keypoints } else { 0 }
                     + if pairwise_angles {
                         keypoints * (keypoints - 1) / 2
                     } else {
                         0
                     };
+                let base = linear_base.then(|| LinearConfig::new(keypoints, 1).init(device));
+                let out_dim = self.latent_dim - usize::from(linear_base);
                 let (hidden_layer, out_inputs) = if hidden == 0 {
                     (None, features)
                 } else {
@@ -334,7 +373,8 @@ impl EncoderConfig {
                         with_cartesian,
                         pairwise_angles,
                         hidden: hidden_layer,
-                        out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
+                        base,
+                        out: LinearConfig::new(out_inputs, out_dim).init(device),
                         // Cut opposite +x until [`Encoder::place_polar_cut`] sees the data.
                         polar_axis: polar.then(|| {
                             Param::from_tensor(Tensor::from_data(
@@ -386,6 +426,9 @@ pub struct KeypointHead {
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
     hidden: Option<Linear>,
+    /// With [`EncoderHead::SoftArgmax::linear_base`]: the keypoints' angles -> `h_0`; `out`
+    /// then gives `h_1..`.
+    base: Option<Linear>,
     out: Linear,
     /// Polar coordinates only: the unit direction `(cos m, sin m)` at which angles are 0; they
     /// are cut at `m + pi`. Not trained (excluded from init and the optimiser).
@@ -435,25 +478,21 @@ impl Encoder {
             .sqrt()
             .clamp_min(1e-12); // [1, du]
         let scale = std.recip() * target_std; // [1, du]
-        let out = match (&mut self.mlp, &mut self.keypoints) {
-            (Some(head), _) => &mut head.fc2,
-            (None, Some(head)) => &mut head.out,
-            (None, None) => return self,
-        };
-        // Weights are [in, out]: scaling column j scales h_j. New parameters must be graph
-        // leaves, so they are rebuilt from their values.
-        let weight = out.weight.val().detach() * scale.clone();
-        let device = weight.device();
-        out.weight = Param::from_tensor(super::trainable(Tensor::from_data(
-            weight.into_data(),
-            &device,
-        )));
-        if let Some(bias) = &out.bias {
-            let du = scale.dims()[1];
-            let bias = (bias.val().detach().reshape([1, du]) - mean) * scale;
-            let device = bias.device();
-            let values = Tensor::<1>::from_data(bias.reshape([du]).into_data(), &device);
-            out.bias = Some(Param::from_tensor(super::trainable(values)));
+        match (&mut self.mlp, &mut self.keypoints) {
+            (Some(head), _) => standardise_columns(&mut head.fc2, mean, scale),
+            (None, Some(head)) => match head.base.as_mut() {
+                // `h_0` is the base's one output, `h_1..` the rest's.
+                Some(base) => {
+                    let du = scale.dims()[1];
+                    let (mean_0, mean_rest) =
+                        (mean.clone().slice([0..1, 0..1]), mean.slice([0..1, 1..du]));
+                    let scale_0 = scale.clone().slice([0..1, 0..1]);
+                    standardise_columns(base, mean_0, scale_0);
+                    standardise_columns(&mut head.out, mean_rest, scale.slice([0..1, 1..du]));
+                }
+                None => standardise_columns(&mut head.out, mean, scale),
+            },
+            (None, None) => {}
         }
         self
     }
@@ -469,7 +508,12 @@ impl Encoder {
             return self;
         }
         let keypoints = head.log_sharpness.val().dims()[0];
-        let per_keypoint = if head.with_cartesian { 4 } else { 2 };
+        // The linear base takes the angles away from the first layer.
+        let per_keypoint = match (head.with_cartesian, head.base.is_some()) {
+            (true, _) => 4,
+            (false, false) => 2,
+            (false, true) => 1,
+        };
         let first = head.hidden.as_mut().unwrap_or(&mut head.out);
         // Weights are [in, out]: the pairwise angles are the inputs after the per-keypoint ones.
         let weight = first.weight.val().detach();
@@ -607,10 +651,49 @@ impl Encoder {
             Some((x, y)) => Tensor::cat(vec![keypoints, pairwise_angles(x, y)], 1),
             None => keypoints,
         };
-        match &head.hidden {
-            Some(hidden) => head.out.forward(tanh(hidden.forward(keypoints))), // [n, du]
-            None => head.out.forward(keypoints),                               // [n, du]
+        head.latent_from_features(keypoints)
+    }
+}
+
+impl KeypointHead {
+    /// The keypoint features `[n, F]` (the K angles, the K radii, then any extras) -> `h`.
+    fn latent_from_features(&self, features: Tensor<2>) -> Tensor<2> {
+        let (base, rest) = match &self.base {
+            Some(base) => {
+                let [n, width] = features.dims();
+                let k = base.weight.dims()[0];
+                let angles = features.clone().slice([0..n, 0..k]);
+                (Some(base.forward(angles)), features.slice([0..n, k..width]))
+            }
+            None => (None, features),
+        };
+        let rest = match &self.hidden {
+            Some(hidden) => self.out.forward(tanh(hidden.forward(rest))), // [n, du or du - 1]
+            None => self.out.forward(rest),
+        };
+        match base {
+            Some(base) => Tensor::cat(vec![base, rest], 1), // [n, du]
+            None => rest,
         }
+    }
+}
+
+/// Rewrites `layer` so each output `y_j` becomes `(y_j - mean_j) scale_j` (`mean`, `scale`:
+/// `[1, out]`; data-dependent initialisation). Weights are `[in, out]`:
+/// scaling column j scales output j. New parameters must be graph leaves, so they are rebuilt
+/// from their values.
+fn standardise_columns(layer: &mut Linear, mean: Tensor<2>, scale: Tensor<2>) {
+    let weight = layer.weight.val().detach() * scale.clone();
+    let device = weight.device();
+    layer.weight = Param::from_tensor(super::trainable(Tensor::from_data(
+        weight.into_data(),
+        &device,
+    )));
+    if let Some(bias) = &layer.bias {
+        let out = scale.dims()[1];
+        let bias = (bias.val().detach().reshape([1, out]) - mean) * scale;
+        let values = Tensor::<1>::from_data(bias.reshape([out]).into_data(), &device);
+        layer.bias = Some(Param::from_tensor(super::trainable(values)));
     }
 }
 
@@ -786,6 +869,7 @@ mod tests {
                 polar: false,
                 with_cartesian: false,
                 pairwise_angles: false,
+                linear_base: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
@@ -793,6 +877,7 @@ mod tests {
                 polar: true,
                 with_cartesian: false,
                 pairwise_angles: false,
+                linear_base: false,
             },
             // Polar keypoints and their (x, y): 16 inputs to the tanh layer or the output.
             EncoderHead::SoftArgmax {
@@ -801,6 +886,7 @@ mod tests {
                 polar: true,
                 with_cartesian: true,
                 pairwise_angles: false,
+                linear_base: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
@@ -808,8 +894,18 @@ mod tests {
                 polar: true,
                 with_cartesian: true,
                 pairwise_angles: false,
+                linear_base: false,
             },
             EncoderHead::Mlp { hidden: 8 },
+            // h_0 from the base layer, h_1 from `out`: each is standardised.
+            EncoderHead::SoftArgmax {
+                keypoints: 4,
+                hidden: 8,
+                polar: true,
+                with_cartesian: false,
+                pairwise_angles: true,
+                linear_base: true,
+            },
         ];
         // Every head as it is, then the polar tanh head (`heads[1]`) with keypoints 1..
         // measured from keypoint 0.
@@ -849,6 +945,7 @@ mod tests {
                 polar: true,
                 with_cartesian: false,
                 pairwise_angles: false,
+                linear_base: false,
             },
             keypoint_sharpness: 30.0,
             ..EncoderConfig::new(2)
@@ -904,6 +1001,7 @@ mod tests {
             polar: false,
             with_cartesian: true,
             pairwise_angles: false,
+            linear_base: false,
         };
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("with_cartesian"), "{err}");
@@ -913,6 +1011,7 @@ mod tests {
             polar: true,
             with_cartesian: true,
             pairwise_angles: false,
+            linear_base: false,
         };
         assert!(config.validate().is_ok());
         // Relative angles need polar keypoints, and a second keypoint to measure.
@@ -925,6 +1024,7 @@ mod tests {
                 polar,
                 with_cartesian: false,
                 pairwise_angles: false,
+                linear_base: false,
             };
             let err = config.validate().unwrap_err().to_string();
             assert!(err.contains("model.encoder.relative_angles"), "{err}");
@@ -945,6 +1045,7 @@ mod tests {
                 polar: true,
                 with_cartesian: false,
                 pairwise_angles: false,
+                linear_base: false,
             },
             ..EncoderConfig::new(2)
         };
@@ -1151,6 +1252,7 @@ mod tests {
             polar,
             with_cartesian: false,
             pairwise_angles,
+            linear_base: false,
         };
         let mut config = EncoderConfig {
             trunk_channels: [4, 4],
@@ -1203,6 +1305,99 @@ mod tests {
         config.pairwise_init_scale = -1.0;
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("model.encoder.pairwise_init_scale"), "{err}");
+    }
+
+    #[test]
+    fn a_linear_base_takes_h0_from_the_angles_alone_and_the_rest_from_radii_and_pairs() {
+        let device = cpu_device();
+        let head = |pairwise_angles, hidden| EncoderHead::SoftArgmax {
+            keypoints: 4,
+            hidden,
+            polar: true,
+            with_cartesian: false,
+            pairwise_angles,
+            linear_base: true,
+        };
+        let mut config = EncoderConfig {
+            trunk_channels: [4, 4],
+            head: head(true, 8),
+            keypoint_sharpness: 30.0,
+            ..EncoderConfig::new(2)
+        };
+        assert!(config.validate().is_ok());
+        let encoder = reinit_params(config.init(&device), 5);
+        let keypoint_head = encoder.keypoints.as_ref().expect("keypoint head");
+        let dims = |layer: Option<&Linear>| layer.map(|l| l.weight.dims());
+        // 4 angles -> h_0; 4 radii and 6 pairs -> 8 tanh units -> h_1.
+        assert_eq!(dims(keypoint_head.base.as_ref()), Some([4, 1]));
+        assert_eq!(dims(keypoint_head.hidden.as_ref()), Some([10, 8]));
+        assert_eq!(dims(Some(&keypoint_head.out)), Some([8, 1]));
+        let h = to_vec(encoder.forward(frames(&device)));
+        assert_eq!(h.len(), 48);
+        assert!(h.iter().all(|x| x.is_finite()), "{h:?}");
+
+        // Features of 3 samples: angles, radii, pairs. Turning every angle moves h_0 by the
+        // base's weights times the turn and leaves h_1; changing radii and pairs leaves h_0.
+        let features: Vec<f32> = (0..3 * 14)
+            .map(|i| ((i * 37 % 11) as f32 - 5.0) / 7.0)
+            .collect();
+        let latent = |features: &[f32]| {
+            let features =
+                Tensor::<2>::from_data(TensorData::new(features.to_vec(), [3, 14]), &device);
+            to_vec(keypoint_head.latent_from_features(features))
+        };
+        let perturbed = |columns: std::ops::Range<usize>, by: f32| {
+            let mut f = features.clone();
+            for row in 0..3 {
+                for c in columns.clone() {
+                    f[row * 14 + c] += by;
+                }
+            }
+            latent(&f)
+        };
+        let h = latent(&features);
+        let base_weights = to_vec(keypoint_head.base.as_ref().expect("base").weight.val());
+        let turned = perturbed(0..4, 0.3);
+        for row in 0..3 {
+            let want = h[2 * row] + 0.3 * base_weights.iter().sum::<f32>();
+            assert!((turned[2 * row] - want).abs() < 1e-5, "{turned:?} {want}");
+            assert_eq!(turned[2 * row + 1], h[2 * row + 1]);
+        }
+        for changed in [perturbed(4..8, 0.3), perturbed(8..14, -0.4)] {
+            for row in 0..3 {
+                assert_eq!(changed[2 * row], h[2 * row]);
+                assert_ne!(changed[2 * row + 1], h[2 * row + 1]);
+            }
+        }
+
+        // `pairwise_init_scale` scales the 6 pair rows of the tanh layer, not the radii.
+        let weights = |encoder: &Encoder| {
+            let head = encoder.keypoints.as_ref().expect("keypoint head");
+            to_vec(head.hidden.as_ref().expect("tanh layer").weight.val())
+        };
+        let drawn = weights(&encoder);
+        let scaled = weights(&encoder.clone().scale_pairwise_inputs(0.5));
+        for (i, (d, s)) in drawn.iter().zip(&scaled).enumerate() {
+            let want = if i / 8 < 4 { *d } else { 0.5 * d };
+            assert_eq!(*s, want, "weight {i} (input {}, output {})", i / 8, i % 8);
+        }
+
+        // Refused by name without what it splits.
+        let refused = |config: &EncoderConfig| {
+            let err = config.validate().unwrap_err().to_string();
+            assert!(err.contains("model.encoder.head.linear_base"), "{err}");
+        };
+        for bad_head in [head(false, 8), head(true, 0)] {
+            refused(&EncoderConfig {
+                head: bad_head,
+                ..config.clone()
+            });
+        }
+        config.relative_angles = true;
+        refused(&config);
+        config.relative_angles = false;
+        config.latent_dim = 1;
+        refused(&config);
     }
 
     #[test]

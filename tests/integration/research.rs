@@ -229,6 +229,7 @@ fn keypoint_head(keypoints: usize, hidden: usize, polar: bool) -> procl::model::
         polar,
         with_cartesian: false,
         pairwise_angles: false,
+        linear_base: false,
     }
 }
 
@@ -362,6 +363,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             polar: true,
             with_cartesian: true,
             pairwise_angles: false,
+            linear_base: false,
         };
     });
     // The constant diagonal input's gains fix the orientation, so its cell turns the search off.
@@ -371,6 +373,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         polar: true,
         with_cartesian: false,
         pairwise_angles: true,
+        linear_base: false,
     };
     preset_plus("stop17_preset_pairwise_angles", &|c| {
         c.model.encoder.head = pairwise(32)
@@ -522,6 +525,24 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         &|c| {
             stop20_preset(c);
             straight_pairwise_faded(c);
+            c.model.encoder.trunk_second_stride = 1;
+        },
+    );
+    // Stop 22: the base angle a linear map of the keypoints' angles, at the gap's centre.
+    preset_plus(
+        "stop22_preset_pairwise_angles_linear_base_cut=180_cut_fade=15_trunk_second_stride=1",
+        &|c| {
+            stop20_preset(c);
+            c.model.encoder.head = procl::model::EncoderHead::SoftArgmax {
+                keypoints: 16,
+                hidden: 32,
+                polar: true,
+                with_cartesian: false,
+                pairwise_angles: true,
+                linear_base: true,
+            };
+            c.model.encoder.polar_cut_deg = Some(180.0);
+            c.model.encoder.polar_cut_fade_deg = 15.0;
             c.model.encoder.trunk_second_stride = 1;
         },
     );

@@ -40,6 +40,7 @@ fn tiny_config(steps: u64, checkpoint_every: u64) -> TrainConfig {
         polar: false,
         with_cartesian: false,
         pairwise_angles: false,
+        linear_base: false,
     };
     config.model.dynamics.hidden = 32;
     // The procl preset searches the latent orientation every 50 steps, which must divide
