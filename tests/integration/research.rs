@@ -233,6 +233,25 @@ fn keypoint_head(keypoints: usize, hidden: usize, polar: bool) -> procl::model::
     }
 }
 
+/// The polar tanh head of `hidden` units with the angles between keypoints (stops 17-22).
+fn pairwise_head(hidden: usize) -> procl::model::EncoderHead {
+    procl::model::EncoderHead::SoftArgmax {
+        keypoints: 16,
+        hidden,
+        polar: true,
+        with_cartesian: false,
+        pairwise_angles: true,
+        linear_base: false,
+    }
+}
+
+/// Stop 18's pairwise design: the pairwise head, the pairs entering from 0, the fade at the cut.
+fn straight_pairwise_faded(c: &mut TrainConfig) {
+    c.model.encoder.head = pairwise_head(32);
+    c.model.encoder.pairwise_init_scale = 0.0;
+    c.model.encoder.polar_cut_fade_deg = 15.0;
+}
+
 #[test]
 fn shipped_ablation_grids_resolve_for_their_envs() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("ablation");
@@ -259,28 +278,41 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     assert_eq!(floor.loss.variance_floor, Some(1.0));
     assert_eq!(floor.steps, 1200);
     assert_eq!(floor.model.encoder.init_latent_std, Some(1.0));
-    // The reacher's procl preset is the design the stop-20 cell measured: stop 15's with no
-    // velocity term in `V` and ten times its risk weight.
+    // The reacher's procl preset is the design the stop-21 cell measured: stop 15's with no
+    // velocity term in `V`, ten times its risk weight (stop 20), and stop 18's pairwise angles
+    // over 32x32 cells (stop 22).
     let cell = |name: &str| {
         let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
         cell.clone()
     };
     let new_design = cell("stop15_polar_tanh-head_action-response_risk_latent_std=1_kp=1");
     let stop20_design = cell("stop20_preset_q_v=0_lambda_r=1");
+    let stop22_design = cell(
+        "stop21_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15_trunk_second_stride=1",
+    );
     let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-    preset.steps = stop20_design.steps;
-    assert_eq!(preset, stop20_design);
+    preset.steps = stop22_design.steps;
+    assert_eq!(preset, stop22_design);
     let stop20_preset = |c: &mut TrainConfig| (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
     let mut expected = new_design.clone();
     stop20_preset(&mut expected);
     assert_eq!(expected, stop20_design);
-    // PC3 has no risk: its preset is still the stop-15 cell's.
+    // Stop 22's networks, for ProCL and PC3 alike.
+    let stop22_networks = |c: &mut TrainConfig| {
+        straight_pairwise_faded(c);
+        c.model.encoder.trunk_second_stride = 1;
+    };
+    stop22_networks(&mut expected);
+    assert_eq!(expected, stop22_design);
+    // PC3 has no risk: its preset is the stop-15 cell's with stop 22's networks.
     let mut pc3_preset = TrainConfig::preset(Preset::Procl, Method::Pc3, EnvKind::Reacher);
     pc3_preset.steps = 1200;
-    assert_eq!(
-        pc3_preset,
-        cell("stop15_pc3_polar_tanh-head_action-response_risk_latent_std=1_kp=1")
-    );
+    let stop22_pc3 =
+        cell("stop22_pc3_pairwise_angles_pairwise_init_scale=0_cut_fade=15_trunk_second_stride=1");
+    assert_eq!(pc3_preset, stop22_pc3);
+    let mut expected = cell("stop15_pc3_polar_tanh-head_action-response_risk_latent_std=1_kp=1");
+    stop22_networks(&mut expected);
+    assert_eq!(expected, stop22_pc3);
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.
     let stop13_design = cell("tanh-head_std1_floor=10");
@@ -292,6 +324,9 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     (undone.loss.kp, undone.loss.kd, undone.loss.lambda_r) = (10.0, 2.0, 10.0);
     undone.loss.q_v = 0.1;
     undone.model.encoder.head = keypoint_head(16, 32, false);
+    undone.model.encoder.pairwise_init_scale = 1.0;
+    undone.model.encoder.polar_cut_fade_deg = 0.0;
+    undone.model.encoder.trunk_second_stride = 2;
     assert_eq!(undone, stop13_design);
     let stop14 = |name: &str| {
         let mut expected = stop13_design.clone();
@@ -367,19 +402,11 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         };
     });
     // The constant diagonal input's gains fix the orientation, so its cell turns the search off.
-    let pairwise = |hidden| procl::model::EncoderHead::SoftArgmax {
-        keypoints: 16,
-        hidden,
-        polar: true,
-        with_cartesian: false,
-        pairwise_angles: true,
-        linear_base: false,
-    };
     preset_plus("stop17_preset_pairwise_angles", &|c| {
-        c.model.encoder.head = pairwise(32)
+        c.model.encoder.head = pairwise_head(32)
     });
     preset_plus("stop17_preset_pairwise_angles_linear", &|c| {
-        c.model.encoder.head = pairwise(0)
+        c.model.encoder.head = pairwise_head(0)
     });
     preset_plus("stop17_preset_constant_diagonal_input=50", &|c| {
         c.orientation_search_every = 0;
@@ -394,7 +421,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         },
     );
     preset_plus("stop17_preset_pairwise_angles_no_floor", &|c| {
-        c.model.encoder.head = pairwise(32);
+        c.model.encoder.head = pairwise_head(32);
         c.loss.variance_floor = Some(0.0);
     });
     preset_plus("stop17_preset_action_response_weight=3", &|c| {
@@ -403,19 +430,19 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus(
         "stop17_preset_pairwise_angles_action_response_weight=3",
         &|c| {
-            c.model.encoder.head = pairwise(32);
+            c.model.encoder.head = pairwise_head(32);
             c.loss.action_response_weight = 3.0;
         },
     );
     preset_plus(
         "stop17_preset_pairwise_angles_action_response_weight=30",
         &|c| {
-            c.model.encoder.head = pairwise(32);
+            c.model.encoder.head = pairwise_head(32);
             c.loss.action_response_weight = 30.0;
         },
     );
     preset_plus("stop17_preset_pairwise_angles_lambda_r=1", &|c| {
-        c.model.encoder.head = pairwise(32);
+        c.model.encoder.head = pairwise_head(32);
         c.loss.lambda_r = 1.0;
     });
     preset_plus("stop17_preset_transition_init_std=0.02", &|c| {
@@ -428,7 +455,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus(
         "stop18_preset_pairwise_angles_action_response_k=10_weight=3",
         &|c| {
-            c.model.encoder.head = pairwise(32);
+            c.model.encoder.head = pairwise_head(32);
             c.loss.action_response_weight = 3.0;
             c.loss.action_response_horizon = 10;
         },
@@ -444,36 +471,31 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus(
         "stop18_preset_pairwise_angles_action_response_velocity_k=10_weight=10",
         &|c| {
-            c.model.encoder.head = pairwise(32);
+            c.model.encoder.head = pairwise_head(32);
             c.loss.action_response_weight = 10.0;
             c.loss.action_response_horizon = 10;
             c.loss.action_response_velocity = true;
         },
     );
     preset_plus("stop18_preset_pairwise_angles_lambda_cpc=0.1", &|c| {
-        c.model.encoder.head = pairwise(32);
+        c.model.encoder.head = pairwise_head(32);
         c.loss.lambda_cpc = 0.1;
     });
     preset_plus(
         "stop18_preset_pairwise_angles_no_orientation_search",
         &|c| {
-            c.model.encoder.head = pairwise(32);
+            c.model.encoder.head = pairwise_head(32);
             c.orientation_search_every = 0;
         },
     );
     preset_plus(
         "stop18_preset_pairwise_angles_pairwise_init_scale=0",
         &|c| {
-            c.model.encoder.head = pairwise(32);
+            c.model.encoder.head = pairwise_head(32);
             c.model.encoder.pairwise_init_scale = 0.0;
         },
     );
     // Stop 18's pairwise design: pairwise angles started at 0, the angle faded before the cut.
-    let straight_pairwise_faded = |c: &mut TrainConfig| {
-        c.model.encoder.head = pairwise(32);
-        c.model.encoder.pairwise_init_scale = 0.0;
-        c.model.encoder.polar_cut_fade_deg = 15.0;
-    };
     preset_plus(
         "stop18_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15",
         &straight_pairwise_faded,
@@ -557,7 +579,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         "stop20_stop15_preset_state_supervision=10_pairwise_angles",
         &|c| {
             supervised(c, 10.0);
-            c.model.encoder.head = pairwise(32);
+            c.model.encoder.head = pairwise_head(32);
         },
     );
     preset_plus(
@@ -571,7 +593,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let supervised_pc3_pairwise = |c: &mut TrainConfig| {
         supervised(c, 10.0);
         (c.loss.lambda_r, c.loss.q_v) = (0.0, 0.0);
-        c.model.encoder.head = pairwise(32);
+        c.model.encoder.head = pairwise_head(32);
     };
     preset_plus(
         "stop20_stop15_preset_state_supervision=10_lambda_r=0_pairwise_angles",
@@ -592,7 +614,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     preset_plus("stop20_state_supervision_only", &|c| supervision_only(c));
     preset_plus("stop20_state_supervision_only_pairwise_angles", &|c| {
         supervision_only(c);
-        c.model.encoder.head = pairwise(32);
+        c.model.encoder.head = pairwise_head(32);
     });
     preset_plus("stop20_state_supervision_only_mlp_head", &|c| {
         supervision_only(c);
