@@ -106,6 +106,20 @@ pub struct LossConfig {
     /// ring; `tools/k_step_response.py`).
     #[serde(default)]
     pub action_response_velocity: bool,
+    /// Turn term: adds `action_response_turn_weight * (RSS_1 - sum_r RSS_r) / TSS`, the share
+    /// of the latent's response (as the flat-chart term reads it: same horizon, same
+    /// regressors) that separate linear maps in `action_response_regions` groups of the batch
+    /// explain and one map for the whole batch does not (0: off, the paper). The groups are
+    /// contiguous along the batch's first principal axis of `h_t`, so on a latent curled into a
+    /// U they are its two arms and its middle, whose action responses are turned against each
+    /// other; on a flat chart one map explains what the regional maps do. The flat-chart term
+    /// charges the unexplained share, which frame-to-frame jitter dominates; this one charges
+    /// only the part that depends on where in the latent the sample lies.
+    #[serde(default)]
+    pub action_response_turn_weight: f64,
+    /// Groups of the turn term (see [`LossConfig::action_response_turn_weight`]); at least 2.
+    #[serde(default = "default_action_response_regions")]
+    pub action_response_regions: usize,
     /// Diagnostic, not a method: adds `state_supervision_weight * mean ||h_t - s(q_t)||^2`,
     /// where `s` standardises the dataset's true configuration `q` per coordinate (0: off, the
     /// paper and every preset). The method itself never sees states. With it on, PD on the
@@ -118,6 +132,10 @@ pub struct LossConfig {
 
 fn default_action_response_horizon() -> usize {
     1
+}
+
+fn default_action_response_regions() -> usize {
+    3
 }
 
 /// The axes the variance floor holds (see [`LossConfig::variance_axes`]).
@@ -204,6 +222,17 @@ pub fn correlation_penalty(h: Tensor<2>) -> Tensor<1> {
 /// gradient of the fitted residual itself (envelope theorem). 0 when `x` is degenerate (no fit
 /// to judge).
 pub fn action_response_unexplained(a: Tensor<2>, x: Tensor<2>) -> Tensor<1> {
+    let device = x.device();
+    match least_squares_sums(a, x) {
+        Some((residual, total)) => residual / total.add_scalar(1e-12),
+        None => Tensor::zeros([1], &device),
+    }
+}
+
+/// The least-squares fit `a ~ x B + c` over the given rows: its residual sum of squares (with
+/// the gradient of [`action_response_unexplained`]: `B` fixed at the optimum) and the centred
+/// total sum of squares of `a`, `[1]` each. `None` when `x` is degenerate (no fit to judge).
+fn least_squares_sums(a: Tensor<2>, x: Tensor<2>) -> Option<(Tensor<1>, Tensor<1>)> {
     let [_, p] = x.dims();
     let [_, d] = a.dims();
     let device = x.device();
@@ -216,18 +245,68 @@ pub fn action_response_unexplained(a: Tensor<2>, x: Tensor<2>) -> Tensor<1> {
     };
     let gram = host(x.clone().transpose().matmul(x.clone()), p, p);
     let cross = host(x.clone().transpose().matmul(a.clone()), p, d);
-    let Some(coefficients) = gram
+    let coefficients = gram
         .try_inverse()
         .map(|inverse| inverse * cross)
-        .filter(|m| m.iter().all(|v| v.is_finite()))
-    else {
-        return Tensor::zeros([1], &device);
-    };
+        .filter(|m| m.iter().all(|v| v.is_finite()))?;
     let coefficients: Vec<f32> = coefficients.transpose().iter().map(|&v| v as f32).collect();
     let coefficients = Tensor::<2>::from_data(TensorData::new(coefficients, [p, d]), &device);
     let residual = (a.clone() - x.matmul(coefficients)).powi_scalar(2).sum();
-    let total = a.powi_scalar(2).sum().add_scalar(1e-12);
-    (residual / total).reshape([1])
+    Some((residual.reshape([1]), a.powi_scalar(2).sum().reshape([1])))
+}
+
+/// The turn term (see [`LossConfig::action_response_turn_weight`]): `(RSS_1 - sum_r RSS_r) /
+/// TSS` for the response `a [n, d]` on the regressors `x [n, p]`, one least-squares map for the
+/// whole batch against one per group of `regions` contiguous groups along the first principal
+/// axis of `h [n, du]` (the grouping is held fixed, like the maps). 0 when a group has too few
+/// rows to fit (`p + 2`) or a fit is degenerate.
+pub fn action_response_turn(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: usize) -> Tensor<1> {
+    let device = x.device();
+    let zero = || Tensor::zeros([1], &device);
+    let [n, p] = x.dims();
+    if regions == 0 || n / regions < p + 2 {
+        return zero();
+    }
+    let Some((residual_one, total)) = least_squares_sums(a.clone(), x.clone()) else {
+        return zero();
+    };
+    let order = principal_axis_order(h);
+    let mut residual_regions = zero();
+    for r in 0..regions {
+        // Near-equal contiguous groups: rows [r n / R, (r + 1) n / R) of the order.
+        let rows: Vec<i64> = order[r * n / regions..(r + 1) * n / regions]
+            .iter()
+            .map(|&i| i as i64)
+            .collect();
+        let index = Tensor::<1, burn::tensor::Int>::from_data(
+            TensorData::new(rows.clone(), [rows.len()]),
+            &device,
+        );
+        let Some((residual, _)) = least_squares_sums(
+            a.clone().select(0, index.clone()),
+            x.clone().select(0, index),
+        ) else {
+            return zero();
+        };
+        residual_regions = residual_regions + residual;
+    }
+    (residual_one - residual_regions) / total.add_scalar(1e-12)
+}
+
+/// Row indices of `h [n, du]` sorted by their projection on its first principal axis (the
+/// eigenvector of the centred covariance with the largest eigenvalue; ties keep row order).
+fn principal_axis_order(h: Tensor<2>) -> Vec<usize> {
+    let [n, du] = h.dims();
+    let values = crate::model::to_vec(h.detach());
+    let rows = nalgebra::DMatrix::from_row_iterator(n, du, values.into_iter().map(f64::from));
+    let mean = rows.row_mean();
+    let centred = nalgebra::DMatrix::from_fn(n, du, |i, j| rows[(i, j)] - mean[j]);
+    let eigen = (centred.transpose() * &centred).symmetric_eigen();
+    let axis = eigen.eigenvalues.imax();
+    let projection = centred * eigen.eigenvectors.column(axis);
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&i, &j| projection[i].total_cmp(&projection[j]));
+    order
 }
 
 /// The factor `c / std(h_t)` (`[1, du]`, gradient through the std) that the Lyapunov risk
@@ -273,6 +352,8 @@ impl Default for LossConfig {
             action_response_weight: 0.0,
             action_response_horizon: default_action_response_horizon(),
             action_response_velocity: false,
+            action_response_turn_weight: 0.0,
+            action_response_regions: default_action_response_regions(),
             state_supervision_weight: 0.0,
         }
     }
@@ -282,11 +363,16 @@ impl LossConfig {
     /// How many steps past `t` a training sample's frames reach: the action-response term's
     /// horizon `k` when the term is on (it reads `i_{t+k}`), else 1 (`i_{t+1}`).
     pub fn frames_ahead(&self) -> usize {
-        if self.action_response_weight > 0.0 {
+        if self.reads_action_response() {
             self.action_response_horizon
         } else {
             1
         }
+    }
+
+    /// Whether the flat-chart or the turn term is on (both read the latent's response).
+    pub fn reads_action_response(&self) -> bool {
+        self.action_response_weight > 0.0 || self.action_response_turn_weight > 0.0
     }
 
     /// Rejects values that make no sense (negative weights or noise, zero gains).
@@ -307,6 +393,10 @@ impl LossConfig {
             ("loss.decorrelation_weight", self.decorrelation_weight),
             ("loss.action_response_weight", self.action_response_weight),
             (
+                "loss.action_response_turn_weight",
+                self.action_response_turn_weight,
+            ),
+            (
                 "loss.state_supervision_weight",
                 self.state_supervision_weight,
             ),
@@ -326,6 +416,15 @@ impl LossConfig {
                     format!("{value} must be finite and >= 0"),
                 ));
             }
+        }
+        if self.action_response_regions < 2 {
+            return Err(Error::config(
+                "loss.action_response_regions",
+                format!(
+                    "{} must be at least 2 (one map is compared with several)",
+                    self.action_response_regions
+                ),
+            ));
         }
         if self.action_response_horizon == 0 {
             return Err(Error::config(
@@ -570,19 +669,34 @@ pub fn procl_loss(
         ahead,
     } = inputs;
     let h_now_for_variance = h_now.clone();
-    let action_response = (config.action_response_weight > 0.0).then(|| {
-        // Without `ahead` the term reads one step, whatever the configured horizon.
+    let action_response = config.reads_action_response().then(|| {
+        // Without `ahead` the terms read one step, whatever the configured horizon.
         let (k, (h_ahead, drive)) = match ahead {
             Some(ahead) => (config.action_response_horizon as f64, ahead),
             None => (1.0, (h_next.clone(), u.clone())),
         };
         let step = h_now.clone() - h_prev.clone(); // dt v_t
         let moved = h_ahead - h_now.clone(); // h_{t+k} - h_t
-        if config.action_response_velocity {
-            action_response_unexplained(moved, Tensor::cat(vec![step, drive], 1))
+        let (response, regressors) = if config.action_response_velocity {
+            (moved, Tensor::cat(vec![step, drive], 1))
         } else {
-            action_response_unexplained(moved - step * k, drive)
+            (moved - step * k, drive)
+        };
+        let mut term = Tensor::zeros([1], &h_now.device());
+        if config.action_response_weight > 0.0 {
+            let unexplained = action_response_unexplained(response.clone(), regressors.clone());
+            term = term + unexplained * config.action_response_weight;
         }
+        if config.action_response_turn_weight > 0.0 {
+            let turn = action_response_turn(
+                response,
+                regressors,
+                h_now.clone(),
+                config.action_response_regions,
+            );
+            term = term + turn * config.action_response_turn_weight;
+        }
+        term
     });
     let v_now = (h_now.clone() - h_prev) / dt;
     let h_next_noisy = h_next.clone() + latent_noise * config.latent_noise_std;
@@ -671,8 +785,8 @@ pub fn procl_loss(
     if config.decorrelation_weight > 0.0 {
         total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
     }
-    if let Some(unexplained) = action_response {
-        total = total + unexplained * config.action_response_weight;
+    if let Some(weighted) = action_response {
+        total = total + weighted;
     }
     LossTerms {
         cpc,
@@ -1065,6 +1179,54 @@ mod tests {
     }
 
     #[test]
+    fn turn_term_charges_a_response_that_turns_along_the_latent_and_not_a_flat_one() {
+        // Three groups of 4 samples along a line in h, each with the actions (1,0), (0,1),
+        // (-1,0), (0,-1) (so x^T x = 2 I per group), responding by a = u B_g. Turned, B_g is
+        // I, a quarter turn R and -I: one map fits (I + R - I) / 3 = R / 3, leaving
+        // 2 (20/9 + 8/9 + 20/9) = 96/9 of the total 3 * 4 = 12, i.e. 8/9; each group's own map
+        // leaves nothing. Flat (B_g = I everywhere) one map explains it all: 0.
+        let device = cpu_device();
+        let actions = [[1.0f32, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
+        let quarter = [[0.0f32, 1.0], [-1.0, 0.0]];
+        let identity = [[1.0f32, 0.0], [0.0, 1.0]];
+        let minus = [[-1.0f32, 0.0], [0.0, -1.0]];
+        // Rows are shuffled and the latent turned by (0.6, 0.8): the groups come from h's
+        // principal axis, not from the row order, and turning the latent changes nothing.
+        let shuffle = [5usize, 0, 11, 3, 8, 1, 10, 6, 2, 9, 4, 7];
+        let (c, s) = (0.6f32, 0.8f32);
+        let build = |maps: [[[f32; 2]; 2]; 3]| {
+            let (mut h, mut u, mut a) = (vec![], vec![], vec![]);
+            for &row in &shuffle {
+                let (group, k) = (row / 4, row % 4);
+                let position = row as f32;
+                h.extend([position * c, position * s]);
+                let [u0, u1] = actions[k];
+                u.extend([u0, u1]);
+                let b = maps[group];
+                let (a0, a1) = (u0 * b[0][0] + u1 * b[1][0], u0 * b[0][1] + u1 * b[1][1]);
+                // The response turned with the latent.
+                a.extend([a0 * c - a1 * s, a0 * s + a1 * c]);
+            }
+            (
+                t2(&h, 12, 2, &device),
+                t2(&u, 12, 2, &device),
+                t2(&a, 12, 2, &device),
+            )
+        };
+        let turn = |maps, regions| {
+            let (h, u, a) = build(maps);
+            scalar(action_response_turn(a, u, h, regions))
+        };
+        assert!((turn([identity, quarter, minus], 3) - 8.0 / 9.0).abs() < 1e-5);
+        assert!(turn([identity, identity, identity], 3).abs() < 1e-5);
+        // The flat-chart term sees the turned batch only as a share no map explains.
+        let (_, u, a) = build([identity, quarter, minus]);
+        assert!((scalar(action_response_unexplained(a, u)) - 8.0 / 9.0).abs() < 1e-5);
+        // Groups of 3 rows cannot fit 2 regressors and an intercept: no judgement.
+        assert_eq!(turn([identity, quarter, minus], 4), 0.0);
+    }
+
+    #[test]
     fn action_response_gradient_flows_through_the_regressors_as_well() {
         // The reference: 1 - R^2 of a centred least-squares fit in f64 (nalgebra's SVD solve,
         // not the Gram inverse the code uses).
@@ -1351,6 +1513,14 @@ mod tests {
         assert_eq!(bad(|c| c.kp = -2.0), "loss.kp");
         assert_eq!(bad(|c| c.kp = f64::INFINITY), "loss.kp");
         assert_eq!(bad(|c| c.lyapunov_dt_s = Some(0.0)), "loss.lyapunov_dt_s");
+        assert_eq!(
+            bad(|c| c.action_response_turn_weight = -1.0),
+            "loss.action_response_turn_weight"
+        );
+        assert_eq!(
+            bad(|c| c.action_response_regions = 1),
+            "loss.action_response_regions"
+        );
         // Zero weights and kd = 0 are allowed (PC3 is lambda_r = 0).
         let mut ok = LossConfig {
             lambda_r: 0.0,

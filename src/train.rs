@@ -905,7 +905,7 @@ pub fn train(
         ));
     }
     let horizon = config.loss.frames_ahead();
-    if config.loss.action_response_weight > 0.0 && horizon + 1 > data.steps() {
+    if config.loss.reads_action_response() && horizon + 1 > data.steps() {
         return Err(Error::config(
             "loss.action_response_horizon",
             format!(

@@ -313,10 +313,18 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut expected = cell("stop15_pc3_polar_tanh-head_action-response_risk_latent_std=1_kp=1");
     stop22_networks(&mut expected);
     assert_eq!(expected, stop22_pc3);
-    // Stop 23: the preset since stop 22 with the cut at the gap's centre.
+    // Stop 23: the preset since stop 22 with the cut at the gap's centre, and with the turn term.
     let mut expected = preset.clone();
     expected.model.encoder.polar_cut_deg = Some(180.0);
     assert_eq!(expected, cell("stop23_preset_cut=180"));
+    let mut expected = preset.clone();
+    expected.loss.action_response_turn_weight = 10.0;
+    expected.loss.action_response_horizon = 10;
+    expected.loss.action_response_velocity = true;
+    assert_eq!(
+        expected,
+        cell("stop23_preset_action_response_turn_weight=10_k=10_velocity")
+    );
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.
     let stop13_design = cell("tanh-head_std1_floor=10");
