@@ -847,6 +847,28 @@ mod tests {
     use crate::model::{cpu_device, frames_to_tensor, reinit_params, to_vec};
 
     /// 24 reacher frames at random configurations.
+    /// Halves the pair inputs' rows (`scale_pairwise_inputs(0.5)`) of the tanh layer with
+    /// `outputs` units and checks that exactly the rows after the first `unscaled` inputs
+    /// changed, by half; returns the drawn weights.
+    fn assert_only_pair_rows_scaled(
+        encoder: &Encoder,
+        unscaled: usize,
+        outputs: usize,
+    ) -> Vec<f32> {
+        let weights = |encoder: &Encoder| {
+            let head = encoder.keypoints.as_ref().expect("keypoint head");
+            to_vec(head.hidden.as_ref().expect("tanh layer").weight.val())
+        };
+        let drawn = weights(encoder);
+        let scaled = weights(&encoder.clone().scale_pairwise_inputs(0.5));
+        for (i, (d, s)) in drawn.iter().zip(&scaled).enumerate() {
+            let want = if i / outputs < unscaled { *d } else { 0.5 * d };
+            let (input, output) = (i / outputs, i % outputs);
+            assert_eq!(*s, want, "weight {i} (input {input}, output {output})");
+        }
+        drawn
+    }
+
     fn frames(device: &Device) -> Tensor<4> {
         let mut env = EnvKind::Reacher.make();
         let mut rendered = vec![];
@@ -1272,16 +1294,7 @@ mod tests {
         assert!(h.iter().all(|x| x.is_finite()), "{h:?}");
 
         // `pairwise_init_scale` scales the 6 pair rows of the first layer and no other.
-        let weights = |encoder: &Encoder| {
-            let head = encoder.keypoints.as_ref().expect("keypoint head");
-            to_vec(head.hidden.as_ref().expect("tanh layer").weight.val())
-        };
-        let drawn = weights(&encoder);
-        let scaled = weights(&encoder.clone().scale_pairwise_inputs(0.5));
-        for (i, (d, s)) in drawn.iter().zip(&scaled).enumerate() {
-            let want = if i / 8 < 8 { *d } else { 0.5 * d };
-            assert_eq!(*s, want, "weight {i} (input {}, output {})", i / 8, i % 8);
-        }
+        let drawn = assert_only_pair_rows_scaled(&encoder, 8, 8);
         assert!(drawn[8 * 8..].iter().any(|&w| w != 0.0));
         // At 0 (through the model config) the fresh latent does not see the pairs at all.
         config.pairwise_init_scale = 0.0;
@@ -1371,16 +1384,7 @@ mod tests {
         }
 
         // `pairwise_init_scale` scales the 6 pair rows of the tanh layer, not the radii.
-        let weights = |encoder: &Encoder| {
-            let head = encoder.keypoints.as_ref().expect("keypoint head");
-            to_vec(head.hidden.as_ref().expect("tanh layer").weight.val())
-        };
-        let drawn = weights(&encoder);
-        let scaled = weights(&encoder.clone().scale_pairwise_inputs(0.5));
-        for (i, (d, s)) in drawn.iter().zip(&scaled).enumerate() {
-            let want = if i / 8 < 4 { *d } else { 0.5 * d };
-            assert_eq!(*s, want, "weight {i} (input {}, output {})", i / 8, i % 8);
-        }
+        assert_only_pair_rows_scaled(&encoder, 4, 8);
 
         // Refused by name without what it splits.
         let refused = |config: &EncoderConfig| {
