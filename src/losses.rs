@@ -598,18 +598,27 @@ pub struct LossInputs {
     pub ahead: Option<(Tensor<2>, Tensor<2>)>,
 }
 
-/// The loss terms of one step (unweighted) and the weighted total.
+/// The loss terms of one step (unweighted) and the weighted total. A term that is switched
+/// off is 0.
 #[derive(Debug, Clone)]
 pub struct LossTerms {
     pub cpc: Tensor<1>,
     pub cons: Tensor<1>,
     pub curv: Tensor<1>,
     pub lyap: Tensor<1>,
+    /// The latent's variance hinge (`loss.variance_floor`).
+    pub var: Tensor<1>,
+    /// The flat-chart term: the share of the k-step action response one map leaves unexplained.
+    pub flat: Tensor<1>,
+    /// The turn term: the share regional maps explain and one map does not.
+    pub turn: Tensor<1>,
     pub total: Tensor<1>,
 }
 
 /// Names of the logged terms, in [`LossValues::as_array`] order.
-pub const LOSS_NAMES: [&str; 5] = ["total", "cpc", "cons", "curv", "lyap"];
+pub const LOSS_NAMES: [&str; 8] = [
+    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn",
+];
 
 /// Loss values read back to the host, for logging.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -619,11 +628,16 @@ pub struct LossValues {
     pub cons: f64,
     pub curv: f64,
     pub lyap: f64,
+    pub var: f64,
+    pub flat: f64,
+    pub turn: f64,
 }
 
 impl LossValues {
-    pub fn as_array(&self) -> [f64; 5] {
-        [self.total, self.cpc, self.cons, self.curv, self.lyap]
+    pub fn as_array(&self) -> [f64; 8] {
+        [
+            self.total, self.cpc, self.cons, self.curv, self.lyap, self.var, self.flat, self.turn,
+        ]
     }
     pub fn is_finite(&self) -> bool {
         self.as_array().iter().all(|x| x.is_finite())
@@ -639,6 +653,9 @@ impl LossTerms {
             &self.cons,
             &self.curv,
             &self.lyap,
+            &self.var,
+            &self.flat,
+            &self.turn,
         ]);
         LossValues {
             total: v[0],
@@ -646,6 +663,9 @@ impl LossTerms {
             cons: v[2],
             curv: v[3],
             lyap: v[4],
+            var: v[5],
+            flat: v[6],
+            turn: v[7],
         }
     }
 }
@@ -669,7 +689,9 @@ pub fn procl_loss(
         ahead,
     } = inputs;
     let h_now_for_variance = h_now.clone();
-    let action_response = config.reads_action_response().then(|| {
+    let device = h_now.device();
+    let zero = || Tensor::<1>::zeros([1], &device);
+    let (flat, turn) = if config.reads_action_response() {
         // Without `ahead` the terms read one step, whatever the configured horizon.
         let (k, (h_ahead, drive)) = match ahead {
             Some(ahead) => (config.action_response_horizon as f64, ahead),
@@ -682,22 +704,25 @@ pub fn procl_loss(
         } else {
             (moved - step * k, drive)
         };
-        let mut term = Tensor::zeros([1], &h_now.device());
-        if config.action_response_weight > 0.0 {
-            let unexplained = action_response_unexplained(response.clone(), regressors.clone());
-            term = term + unexplained * config.action_response_weight;
-        }
-        if config.action_response_turn_weight > 0.0 {
-            let turn = action_response_turn(
+        let flat = if config.action_response_weight > 0.0 {
+            action_response_unexplained(response.clone(), regressors.clone())
+        } else {
+            zero()
+        };
+        let turn = if config.action_response_turn_weight > 0.0 {
+            action_response_turn(
                 response,
                 regressors,
                 h_now.clone(),
                 config.action_response_regions,
-            );
-            term = term + turn * config.action_response_turn_weight;
-        }
-        term
-    });
+            )
+        } else {
+            zero()
+        };
+        (flat, turn)
+    } else {
+        (zero(), zero())
+    };
     let v_now = (h_now.clone() - h_prev) / dt;
     let h_next_noisy = h_next.clone() + latent_noise * config.latent_noise_std;
     let v_next_noisy = (h_next_noisy.clone() - h_now.clone()) / dt;
@@ -775,24 +800,28 @@ pub fn procl_loss(
         + cons.clone() * config.lambda_cons
         + curv.clone() * config.lambda_curv;
     let mut total = pc3 * config.lambda_pc3 + lyap.clone() * config.lambda_r;
-    if let Some(floor) = config.variance_floor {
-        let hinge = match config.variance_axes {
+    let var = match config.variance_floor {
+        Some(floor) => match config.variance_axes {
             VarianceAxes::Coordinates => variance_hinge(h_now_for_variance.clone(), floor),
             VarianceAxes::Principal => principal_variance_hinge(h_now_for_variance.clone(), floor),
-        };
-        total = total + hinge * config.variance_weight;
-    }
+        },
+        None => zero(),
+    };
+    total = total
+        + var.clone() * config.variance_weight
+        + flat.clone() * config.action_response_weight
+        + turn.clone() * config.action_response_turn_weight;
     if config.decorrelation_weight > 0.0 {
         total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
-    }
-    if let Some(weighted) = action_response {
-        total = total + weighted;
     }
     LossTerms {
         cpc,
         cons,
         curv,
         lyap,
+        var,
+        flat,
+        turn,
         total,
     }
 }

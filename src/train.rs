@@ -976,7 +976,7 @@ fn run_training<O: Objective>(
         }
         let (m, a, meta) = load_checkpoint(&run.checkpoint(), model, device)?;
         (model, adam, start) = (m, a, meta.step);
-        truncate_metrics(&run.metrics(), start)?;
+        truncate_metrics(&run.metrics(), start, &metrics_header(O::METRICS))?;
     } else {
         if run.checkpoint().exists() {
             return Err(Error::config(
@@ -989,7 +989,7 @@ fn run_training<O: Objective>(
         }
         model = objective.prepare(model);
         crate::fsutil::write_json(&run.config(), config)?;
-        let header = format!("step,{},seconds\n", O::METRICS.join(","));
+        let header = metrics_header(O::METRICS) + "\n";
         std::fs::write(run.metrics(), header).map_err(|e| Error::io(run.metrics(), e))?;
     }
     let mut metrics = std::fs::OpenOptions::new()
@@ -1044,22 +1044,50 @@ fn run_training<O: Objective>(
     })
 }
 
+/// metrics.csv's first line for a method logging `terms`.
+fn metrics_header(terms: &[&str]) -> String {
+    format!("step,{},seconds", terms.join(","))
+}
+
 /// Drops the metric rows after `step` (written after the last checkpoint by a run that then
-/// stopped), so a resumed run's `metrics.csv` has each step once.
-fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
+/// stopped), so a resumed run's `metrics.csv` has each step once, and brings the header up to
+/// `header`.
+fn truncate_metrics(path: &Path, step: u64, header: &str) -> Result<()> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let kept: Vec<&str> = text
-        .lines()
-        .enumerate()
-        .filter(|(i, line)| {
-            *i == 0
-                || line
-                    .split(',')
-                    .next()
-                    .and_then(|s| s.parse::<u64>().ok())
-                    .is_some_and(|s| s <= step)
-        })
-        .map(|(_, line)| line)
+    let mut lines = text.lines();
+    let old_header = lines.next().unwrap_or(header);
+    // A run started by an older procl has fewer columns: its rows are carried over by column
+    // name, with the columns it did not log left empty, so every row matches the header.
+    let old_columns: Vec<&str> = old_header.split(',').collect();
+    let carry = |line: &str| -> String {
+        if old_header == header {
+            return line.to_string();
+        }
+        let fields: Vec<&str> = line.split(',').collect();
+        header
+            .split(',')
+            .map(|name| {
+                old_columns
+                    .iter()
+                    .position(|c| *c == name)
+                    .and_then(|k| fields.get(k))
+                    .copied()
+                    .unwrap_or("")
+            })
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let kept: Vec<String> = std::iter::once(header.to_string())
+        .chain(
+            lines
+                .filter(|line| {
+                    line.split(',')
+                        .next()
+                        .and_then(|s| s.parse::<u64>().ok())
+                        .is_some_and(|s| s <= step)
+                })
+                .map(carry),
+        )
         .collect();
     let body = kept.join("\n") + "\n";
     crate::write_atomically(path, true, |w| {
@@ -1294,6 +1322,76 @@ mod tests {
             curled > 0.05 && curled > 50.0 * flat,
             "curled {curled}, flat {flat}"
         );
+    }
+
+    #[test]
+    fn logged_terms_add_up_to_the_total_minimised() {
+        let data = tiny_dataset(EnvKind::Reacher, 2, 200);
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        config.batch_size = 24;
+        config.loss.action_response_horizon = 3;
+        config.loss.action_response_weight = 2.0;
+        config.loss.action_response_turn_weight = 5.0;
+        // A floor above any fresh latent's spread, so the hinge is logged above 0.
+        config.loss.variance_floor = Some(100.0);
+        let device = crate::model::cpu_device();
+        let model = config.model.init(7, &device).expect("model");
+        let (inputs, _) = loss_inputs_and_batch(&model, &data, &config, 0, &device);
+        let dt = data.meta.control_dt_s;
+        let values: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
+            .values()
+            .into();
+        let term = |name: &str| values.get(name).expect(name);
+        let loss = &config.loss;
+        let pc3 = loss.lambda_cpc * term("cpc")
+            + loss.lambda_cons * term("cons")
+            + loss.lambda_curv * term("curv");
+        let recombined = loss.lambda_pc3 * pc3
+            + loss.lambda_r * term("lyap")
+            + loss.variance_weight * term("var")
+            + loss.action_response_weight * term("flat")
+            + loss.action_response_turn_weight * term("turn");
+        assert!(
+            (recombined - values.total()).abs() <= 1e-4 * values.total().abs().max(1.0),
+            "{values}: recombined {recombined}"
+        );
+        assert!(term("var") > 1.0 && term("flat") > 0.0, "{values}");
+        assert!((0.0..=1.0).contains(&term("turn")), "{values}");
+
+        // Switched off, a term is logged as 0 and the header keeps its column.
+        config.loss.action_response_weight = 0.0;
+        config.loss.action_response_turn_weight = 0.0;
+        config.loss.variance_floor = None;
+        let (inputs, _) = loss_inputs_and_batch(&model, &data, &config, 0, &device);
+        let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
+            .values()
+            .into();
+        for name in ["var", "flat", "turn"] {
+            assert_eq!(off.get(name), Some(0.0), "{off}");
+        }
+        assert_eq!(off.names, &LOSS_NAMES);
+    }
+
+    #[test]
+    fn resumed_metrics_keep_steps_up_to_the_checkpoint_under_the_current_header() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("metrics.csv");
+        let header = metrics_header(&LOSS_NAMES);
+        // Written by a procl that logged five terms; step 3 came after the last checkpoint.
+        let old = "step,total,cpc,cons,curv,lyap,seconds\n\
+                   1,5,1,2,0,0.5,1.5\n2,4,1,1.5,0,0.4,3\n3,3,1,1,0,0.3,4.5\n";
+        std::fs::write(&path, old).expect("write");
+        truncate_metrics(&path, 2, &header).expect("truncate");
+        let text = std::fs::read_to_string(&path).expect("read");
+        assert_eq!(
+            text,
+            "step,total,cpc,cons,curv,lyap,var,flat,turn,seconds\n\
+             1,5,1,2,0,0.5,,,,1.5\n2,4,1,1.5,0,0.4,,,,3\n"
+        );
+        // Under the current header rows are kept as they are.
+        truncate_metrics(&path, 1, &header).expect("truncate again");
+        let text = std::fs::read_to_string(&path).expect("read");
+        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,1.5\n"));
     }
 
     #[test]

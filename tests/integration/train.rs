@@ -53,11 +53,14 @@ fn tiny_config(steps: u64, checkpoint_every: u64) -> TrainConfig {
 fn metrics_rows(dir: &Path) -> Vec<Vec<f64>> {
     let text = std::fs::read_to_string(RunPaths::new(dir).metrics()).unwrap();
     let mut lines = text.lines();
-    assert_eq!(lines.next(), Some("step,total,cpc,cons,curv,lyap,seconds"));
+    assert_eq!(
+        lines.next(),
+        Some("step,total,cpc,cons,curv,lyap,var,flat,turn,seconds")
+    );
     lines
         .map(|line| {
             let mut row: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
-            assert_eq!(row.len(), 7, "bad row {line}");
+            assert_eq!(row.len(), 10, "bad row {line}");
             row.pop();
             row
         })
