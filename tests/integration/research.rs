@@ -325,6 +325,17 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         expected,
         cell("stop23_preset_action_response_turn_weight=10_k=10_velocity")
     );
+    // Stop 24: the turn term at weight 3, then with the floor on the principal axes.
+    expected.loss.action_response_turn_weight = 3.0;
+    assert_eq!(
+        expected,
+        cell("stop24_preset_action_response_turn_weight=3_k=10_velocity")
+    );
+    expected.loss.variance_axes = procl::losses::VarianceAxes::Principal;
+    assert_eq!(
+        expected,
+        cell("stop24_preset_action_response_turn_weight=3_k=10_velocity_variance_axes=principal")
+    );
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.
     let stop13_design = cell("tanh-head_std1_floor=10");
