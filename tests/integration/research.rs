@@ -680,4 +680,11 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     expected.steps = q_v_0.steps;
     expected.loss.q_v = 0.0;
     assert_eq!(&expected, q_v_0);
+    // Stop 24: a lighter velocity term.
+    let (_, q_v_003) = configs
+        .iter()
+        .find(|(n, _)| n == "stop24_q_v=0.03")
+        .unwrap();
+    expected.loss.q_v = 0.03;
+    assert_eq!(&expected, q_v_003);
 }
