@@ -846,7 +846,6 @@ mod tests {
     use crate::envs::EnvKind;
     use crate::model::{cpu_device, frames_to_tensor, reinit_params, to_vec};
 
-    /// 24 reacher frames at random configurations.
     /// Halves the pair inputs' rows (`scale_pairwise_inputs(0.5)`) of the tanh layer with
     /// `outputs` units and checks that exactly the rows after the first `unscaled` inputs
     /// changed, by half; returns the drawn weights.
@@ -862,13 +861,14 @@ mod tests {
         let drawn = weights(encoder);
         let scaled = weights(&encoder.clone().scale_pairwise_inputs(0.5));
         for (i, (d, s)) in drawn.iter().zip(&scaled).enumerate() {
-            let want = if i / outputs < unscaled { *d } else { 0.5 * d };
             let (input, output) = (i / outputs, i % outputs);
+            let want = if input < unscaled { *d } else { 0.5 * d };
             assert_eq!(*s, want, "weight {i} (input {input}, output {output})");
         }
         drawn
     }
 
+    /// 24 reacher frames at random configurations.
     fn frames(device: &Device) -> Tensor<4> {
         let mut env = EnvKind::Reacher.make();
         let mut rendered = vec![];
