@@ -1058,22 +1058,22 @@ fn truncate_metrics(path: &Path, step: u64, header: &str) -> Result<()> {
     let old_header = lines.next().unwrap_or(header);
     // A run started by an older procl has fewer columns: its rows are carried over by column
     // name, with the columns it did not log left empty, so every row matches the header.
-    let old_columns: Vec<&str> = old_header.split(',').collect();
-    let carry = |line: &str| -> String {
-        if old_header == header {
-            return line.to_string();
-        }
-        let fields: Vec<&str> = line.split(',').collect();
+    // `sources[j]`: the old column of the header's column `j`; `None` when the headers agree.
+    let sources: Option<Vec<Option<usize>>> = (old_header != header).then(|| {
+        let old_columns: Vec<&str> = old_header.split(',').collect();
         header
             .split(',')
-            .map(|name| {
-                old_columns
-                    .iter()
-                    .position(|c| *c == name)
-                    .and_then(|k| fields.get(k))
-                    .copied()
-                    .unwrap_or("")
-            })
+            .map(|name| old_columns.iter().position(|c| *c == name))
+            .collect()
+    });
+    let carry = |line: &str| -> String {
+        let Some(sources) = &sources else {
+            return line.to_string();
+        };
+        let fields: Vec<&str> = line.split(',').collect();
+        sources
+            .iter()
+            .map(|k| k.and_then(|k| fields.get(k)).copied().unwrap_or(""))
             .collect::<Vec<_>>()
             .join(",")
     };
