@@ -8,7 +8,11 @@ Reads an eval.json written by `procl eval` (it needs the per-episode `goal_confi
     wrist past 120 degrees ("folded"), else "rest";
   - by goal shoulder angle: below -110, -110..110, above 110 degrees;
   - by where the arm stopped: within 5 degrees of a joint limit (shoulder +-160, wrist 0 or 160)
-    or in free space, with how many of each ended more than 0.3 rad from the goal.
+    or in free space, with how many of each ended more than 0.3 rad from the goal;
+  - where the eval.json has them (since stop 25), by the latent: whether the arm still moved
+    (joint speed > 0.05 rad/s after the last step), and how far its last latent was from the
+    goal's as a share of the first's (< 5%: PD had reached h*, so the latent folds two
+    configurations onto one h).
 Standard library only:
   python3 tools/reach_failures.py runs/R/eval.json
 """
@@ -66,6 +70,31 @@ def main():
     print("failures by where the arm stopped (of them > 0.3 rad from the goal):")
     for key, (failed, far) in sorted(by_stop.items(), key=lambda kv: -kv[1][0]):
         print(f"  {key}: {failed} ({far})")
+    print_latent_gaps(method, threshold)
+
+
+def print_latent_gaps(method, threshold):
+    """Failures by motion and by the latent's remaining share of its start gap to h*."""
+    columns = ["final_velocities", "goal_latents", "start_latents", "final_latents"]
+    if not all(method.get(c) for c in columns):
+        return
+    rows = []
+    for distance, qd, goal, start, final in zip(
+        method["final_distances"], *(method[c] for c in columns)
+    ):
+        if distance < threshold:
+            continue
+        gap = math.dist(final, goal) / max(math.dist(start, goal), 1e-12)
+        speed = math.hypot(*qd)
+        rows.append((gap, speed))
+    if not rows:
+        return
+    moving = sum(speed > 0.05 for _, speed in rows)
+    print(f"failures still moving (> 0.05 rad/s): {moving} of {len(rows)}")
+    print("failures by the last latent's gap to h* (share of the first's):")
+    for low, high in [(0, 0.05), (0.05, 0.2), (0.2, math.inf)]:
+        n = sum(low <= gap < high for gap, _ in rows)
+        print(f"  {low:.0%}..{'' if high == math.inf else f'{high:.0%}'}: {n}")
 
 
 if __name__ == "__main__":

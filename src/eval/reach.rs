@@ -82,6 +82,9 @@ pub struct EpisodeRecord {
     pub goal_latent: Vec<f64>,
     /// The goal's true configuration.
     pub goal_config: Vec<f64>,
+    /// True joint velocity `qd` after the last step: whether an episode that ended short of
+    /// its goal had stopped there.
+    pub final_velocity: Vec<f64>,
     /// The fingertip's distance to the goal's after the last step (m; the reacher only, see
     /// [`crate::envs::Env::fingertip_distance_m`]).
     pub final_fingertip_distance_m: Option<f64>,
@@ -127,6 +130,7 @@ pub fn run_episode(
         }
         if step == horizon {
             record.final_fingertip_distance_m = sim.fingertip_distance_m(&state.q, &goal.q);
+            record.final_velocity = state.qd.clone();
             break;
         }
         policy.act(&frame, &state, &mut u);
@@ -156,6 +160,19 @@ pub struct MethodSummary {
     pub goal_configs: Vec<Vec<f64>>,
     #[serde(default)]
     pub final_configs: Vec<Vec<f64>>,
+    /// Each episode's true joint velocity after the last step.
+    #[serde(default)]
+    pub final_velocities: Vec<Vec<f64>>,
+    /// For latent policies, each episode's goal latent `h*` and the latent `h` of its first
+    /// and last frames acted on (empty for the oracle): a failed episode that stopped with
+    /// `h` at `h*` ended on a fold of the latent (two configurations, one `h`), one that
+    /// stopped elsewhere was held off by a limit or the action bounds.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub goal_latents: Vec<Vec<f64>>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub start_latents: Vec<Vec<f64>>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub final_latents: Vec<Vec<f64>>,
     pub final_mean: f64,
     pub final_std: f64,
     /// The reacher's final fingertip distance to the goal's per episode (m), and its mean and
@@ -193,6 +210,18 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     }
     let idx = ((sorted.len() - 1) as f64 * p).round() as usize;
     sorted[idx]
+}
+
+/// One latent per episode picked by `pick`, or empty where an episode has none (the oracle).
+fn latent_column(
+    episodes: &[EpisodeRecord],
+    pick: impl Fn(&EpisodeRecord) -> Option<Vec<f64>>,
+) -> Vec<Vec<f64>> {
+    let column: Option<Vec<Vec<f64>>> = episodes
+        .iter()
+        .map(|e| pick(e).filter(|h| !h.is_empty()))
+        .collect();
+    column.unwrap_or_default()
 }
 
 /// Summarises episodes (and, for latent policies, their control times in seconds).
@@ -241,6 +270,10 @@ pub fn summarise(
             .iter()
             .filter_map(|e| e.configs.last().cloned())
             .collect(),
+        final_velocities: episodes.iter().map(|e| e.final_velocity.clone()).collect(),
+        goal_latents: latent_column(episodes, |e| Some(e.goal_latent.clone())),
+        start_latents: latent_column(episodes, |e| e.latents.first().cloned()),
+        final_latents: latent_column(episodes, |e| e.latents.last().cloned()),
         final_mean,
         final_std,
         final_fingertip_mean_m: fingertip_mean_std.map(|(mean, _)| mean),

@@ -41,9 +41,15 @@ fn oracle_reaches_every_goal_in_every_env() {
         // Each episode's start, goal and final configuration, in task order.
         let tasks = reach_tasks(env, &protocol);
         assert_eq!(oracle.final_configs.len(), tasks.len());
+        assert_eq!(oracle.final_velocities.len(), tasks.len());
         for (k, (start, goal)) in tasks.iter().enumerate() {
             assert_eq!(oracle.start_configs[k], start.q, "{env} episode {k}");
             assert_eq!(oracle.goal_configs[k], goal.q, "{env} episode {k}");
+            assert_eq!(
+                oracle.final_velocities[k].len(),
+                goal.qd.len(),
+                "{env} episode {k}"
+            );
             let gap = oracle.final_configs[k]
                 .iter()
                 .zip(&goal.q)
@@ -160,6 +166,7 @@ fn eval_writes_the_documented_outputs() {
             "start_configs",
             "goal_configs",
             "final_configs",
+            "final_velocities",
             "final_mean",
             "final_std",
             "success_rate",
@@ -171,6 +178,11 @@ fn eval_writes_the_documented_outputs() {
             protocol.horizon + 1
         );
         assert_eq!(m["success_rate"].as_f64().unwrap(), summary.success_rate);
+    }
+    // Latent PD reports each episode's goal, first and last latent; the oracle has none.
+    for key in ["goal_latents", "start_latents", "final_latents"] {
+        assert_eq!(methods[0][key].as_array().unwrap().len(), 2, "{key}");
+        assert!(methods[1].get(key).is_none(), "oracle {key}");
     }
     // Latent PD is timed, the oracle is not.
     assert!(methods[0]["control_time_us_p50"].as_f64().unwrap() > 0.0);
