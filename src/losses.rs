@@ -120,6 +120,23 @@ pub struct LossConfig {
     /// Groups of the turn term (see [`LossConfig::action_response_turn_weight`]); at least 2.
     #[serde(default = "default_action_response_regions")]
     pub action_response_regions: usize,
+    /// Separation term: adds `separation_weight * mean_{i != j} relu(rho D_ij - d_ij)^2 /
+    /// rho^2` over the batch's frames `i_t` (0: off, the paper), where `D_ij` is the squared
+    /// distance between frames `i` and `j` (each averaged over 4x4 pixel blocks) over its batch
+    /// mean, `d_ij = ||h_i - h_j||` over its batch mean, and `rho = separation_ratio`. It
+    /// charges pairs of frames that look different but share a latent. On the reacher most
+    /// failed episodes stop with `h` within 0.1% of the goal's `h` while the arm is 0.1-1.5 rad
+    /// from the goal (docs/method.md, stop 25): PD did its job on a latent that folds two
+    /// configurations onto one point, which CPC misses when the fold is small, because a batch
+    /// rarely holds both sides of it close together. A squared frame distance grows in
+    /// proportion to a small motion and saturates once the moved links no longer overlap, so
+    /// far-apart configurations ask for at least `rho` times the mean latent distance, and close
+    /// ones for a share that grows with how much of the image moved.
+    #[serde(default)]
+    pub separation_weight: f64,
+    /// `rho` of the separation term (see [`LossConfig::separation_weight`]); > 0.
+    #[serde(default = "default_separation_ratio")]
+    pub separation_ratio: f64,
     /// Diagnostic, not a method: adds `state_supervision_weight * mean ||h_t - s(q_t)||^2`,
     /// where `s` standardises the dataset's true configuration `q` per coordinate (0: off, the
     /// paper and every preset). The method itself never sees states. With it on, PD on the
@@ -132,6 +149,10 @@ pub struct LossConfig {
 
 fn default_action_response_horizon() -> usize {
     1
+}
+
+fn default_separation_ratio() -> f64 {
+    0.05
 }
 
 fn default_action_response_regions() -> usize {
@@ -293,6 +314,53 @@ pub fn action_response_turn(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: u
     (residual_one - residual_regions) / total.add_scalar(1e-12)
 }
 
+/// The separation term (see [`LossConfig::separation_weight`]) of the latents `h [n, du]`
+/// against their frames' squared distances `frame_distances [n, n]` (any scale; the diagonal
+/// is ignored). Both distances are taken over their mean across the batch's pairs; the
+/// latent's mean is held fixed, so the gradient moves the charged pairs apart rather than
+/// the others together. 0 for fewer than 2 rows or frames that are all equal.
+pub fn separation_loss(h: Tensor<2>, frame_distances: Tensor<2>, ratio: f64) -> Tensor<1> {
+    let [n, du] = h.dims();
+    let device = h.device();
+    if n < 2 {
+        return Tensor::zeros([1], &device);
+    }
+    let off_diagonal = Tensor::<2>::ones([n, n], &device) - Tensor::eye(n, &device);
+    let pairs = (n * (n - 1)) as f64;
+    let mean_over_pairs = |d: Tensor<2>| (d.sum() / pairs).reshape([1, 1]).add_scalar(1e-12);
+    // `||h_i - h_j||`, with a floor under the square so coincident rows keep a finite gradient.
+    let difference = h.clone().reshape([n, 1, du]) - h.reshape([1, n, du]); // [n, n, du]
+    let latent = difference
+        .powi_scalar(2)
+        .sum_dim(2)
+        .reshape([n, n])
+        .add_scalar(1e-12)
+        .sqrt()
+        * off_diagonal.clone();
+    let latent = latent.clone() / mean_over_pairs(latent.detach());
+    let frames = frame_distances.detach() * off_diagonal.clone();
+    let frames = frames.clone() / mean_over_pairs(frames);
+    let shortfall = relu(frames * ratio - latent) * off_diagonal;
+    shortfall.powi_scalar(2).sum().reshape([1]) / (pairs * ratio * ratio)
+}
+
+/// Squared distances `[n, n]` between frames `[n, c, rows, cols]` (rows and cols multiples of
+/// 4), each averaged over 4x4 pixel blocks first: the separation term's `D`. The averaging
+/// widens the range over which the distance grows with a small motion from a link's width
+/// (2-3 pixels) to about 4 more.
+pub fn frame_block_distances(frames: Tensor<4>) -> Tensor<2> {
+    let [n, c, rows, cols] = frames.dims();
+    let blocks = frames
+        .detach()
+        .reshape([n, c, rows / 4, 4, cols / 4, 4])
+        .mean_dim(5)
+        .mean_dim(3)
+        .reshape([n, c * (rows / 4) * (cols / 4)]);
+    let squares = blocks.clone().powi_scalar(2).sum_dim(1); // [n, 1]
+    let gram = blocks.clone().matmul(blocks.transpose());
+    (squares.clone() + squares.transpose() - gram * 2.0).clamp_min(0.0)
+}
+
 /// Row indices of `h [n, du]` sorted by their projection on its first principal axis (the
 /// eigenvector of the centred covariance with the largest eigenvalue; ties keep row order).
 fn principal_axis_order(h: Tensor<2>) -> Vec<usize> {
@@ -354,6 +422,8 @@ impl Default for LossConfig {
             action_response_velocity: false,
             action_response_turn_weight: 0.0,
             action_response_regions: default_action_response_regions(),
+            separation_weight: 0.0,
+            separation_ratio: default_separation_ratio(),
             state_supervision_weight: 0.0,
         }
     }
@@ -396,11 +466,18 @@ impl LossConfig {
                 "loss.action_response_turn_weight",
                 self.action_response_turn_weight,
             ),
+            ("loss.separation_weight", self.separation_weight),
             (
                 "loss.state_supervision_weight",
                 self.state_supervision_weight,
             ),
         ];
+        if !(self.separation_ratio.is_finite() && self.separation_ratio > 0.0) {
+            return Err(Error::config(
+                "loss.separation_ratio",
+                format!("{} must be finite and > 0", self.separation_ratio),
+            ));
+        }
         if let Some(c) = self.risk_latent_std
             && !(c.is_finite() && c > 0.0)
         {
@@ -596,6 +673,8 @@ pub struct LossInputs {
     /// For the `k`-step action-response term (`k > 1` and the term on): `h_{t+k}` and the drive
     /// `sum_{j<k} (k - j) u_{t+j}`, `[n, du]` each. `None`: the term reads one step.
     pub ahead: Option<(Tensor<2>, Tensor<2>)>,
+    /// For the separation term (on): squared distances between the frames `i_t`, `[n, n]`.
+    pub frame_distances: Option<Tensor<2>>,
 }
 
 /// The loss terms of one step (unweighted) and the weighted total. A term that is switched
@@ -612,12 +691,14 @@ pub struct LossTerms {
     pub flat: Tensor<1>,
     /// The turn term: the share regional maps explain and one map does not.
     pub turn: Tensor<1>,
+    /// The separation term: pairs of different-looking frames with too close latents.
+    pub sep: Tensor<1>,
     pub total: Tensor<1>,
 }
 
 /// Names of the logged terms, in [`LossValues::as_array`] order.
-pub const LOSS_NAMES: [&str; 8] = [
-    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn",
+pub const LOSS_NAMES: [&str; 9] = [
+    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn", "sep",
 ];
 
 /// Loss values read back to the host, for logging.
@@ -631,12 +712,14 @@ pub struct LossValues {
     pub var: f64,
     pub flat: f64,
     pub turn: f64,
+    pub sep: f64,
 }
 
 impl LossValues {
-    pub fn as_array(&self) -> [f64; 8] {
+    pub fn as_array(&self) -> [f64; 9] {
         [
             self.total, self.cpc, self.cons, self.curv, self.lyap, self.var, self.flat, self.turn,
+            self.sep,
         ]
     }
     pub fn is_finite(&self) -> bool {
@@ -656,6 +739,7 @@ impl LossTerms {
             &self.var,
             &self.flat,
             &self.turn,
+            &self.sep,
         ]);
         LossValues {
             total: v[0],
@@ -666,6 +750,7 @@ impl LossTerms {
             var: v[5],
             flat: v[6],
             turn: v[7],
+            sep: v[8],
         }
     }
 }
@@ -687,10 +772,15 @@ pub fn procl_loss(
         curvature_noise,
         permutation,
         ahead,
+        frame_distances,
     } = inputs;
     let h_now_for_variance = h_now.clone();
     let device = h_now.device();
     let zero = || Tensor::<1>::zeros([1], &device);
+    let sep = match frame_distances.filter(|_| config.separation_weight > 0.0) {
+        Some(frames) => separation_loss(h_now.clone(), frames, config.separation_ratio),
+        None => zero(),
+    };
     let (flat, turn) = if config.reads_action_response() {
         // Without `ahead` the terms read one step, whatever the configured horizon.
         let (k, (h_ahead, drive)) = match ahead {
@@ -810,7 +900,8 @@ pub fn procl_loss(
     total = total
         + var.clone() * config.variance_weight
         + flat.clone() * config.action_response_weight
-        + turn.clone() * config.action_response_turn_weight;
+        + turn.clone() * config.action_response_turn_weight
+        + sep.clone() * config.separation_weight;
     if config.decorrelation_weight > 0.0 {
         total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
     }
@@ -822,6 +913,7 @@ pub fn procl_loss(
         var,
         flat,
         turn,
+        sep,
         total,
     }
 }
@@ -1205,6 +1297,57 @@ mod tests {
         // A constant action has no fit to judge.
         let constant = t2(&[0.3; 4], 4, 1, &device);
         assert_eq!(unexplained(a, constant), 0.0);
+    }
+
+    #[test]
+    fn separation_charges_latents_closer_than_rho_times_their_frames_distance() {
+        // h = 0, 1, 3 with equal frame distances (every D over its mean is 1). The latent
+        // distances 1, 3, 2 over their mean 2 are 0.5, 1.5, 1; at rho = 0.8 only the pair
+        // (0, 1) falls short, by 0.3, in both orders: 2 * 0.09 / (6 pairs * 0.64) = 0.046875.
+        let device = cpu_device();
+        let frames = t2(
+            &[0.0, 5.0, 5.0, 5.0, 0.0, 5.0, 5.0, 5.0, 0.0],
+            3,
+            3,
+            &device,
+        );
+        let h = t2(&[0.0, 1.0, 3.0], 3, 1, &device);
+        let got = scalar(separation_loss(h.clone(), frames.clone(), 0.8));
+        assert!((got - 0.046875).abs() < 1e-6, "{got}");
+        // The latent's scale does not matter, and at rho = 0.5 no pair is short.
+        let scaled = scalar(separation_loss(h.clone() * 7.0, frames.clone(), 0.8));
+        assert!((scaled - got).abs() < 1e-6, "{scaled}");
+        assert_eq!(scalar(separation_loss(h, frames.clone(), 0.5)), 0.0);
+        // Two different-looking frames on nearly one latent point are charged, and the
+        // gradient moves them apart.
+        let device = device.autodiff();
+        let collided = t2(&[0.0, 0.0, 2.0, 0.0, 2.1, 0.0], 3, 2, &device).require_grad();
+        let frames = Tensor::<2>::from_data(frames.into_data(), &device);
+        let loss = separation_loss(collided.clone(), frames, 0.5);
+        assert!(scalar(loss.clone()) > 0.0);
+        let g = to_vec(collided.grad(&loss.backward()).expect("gradient of h"));
+        // Rows 1 and 2 are 0.1 apart in x: descent (-g) moves row 1 left and row 2 right.
+        assert!(-g[2] < 0.0 && -g[4] > 0.0, "{g:?}");
+    }
+
+    #[test]
+    fn frame_block_distances_average_4x4_blocks_before_squaring() {
+        // Frame 0 is black; frame 1 has one pixel at 1.0 (its block's mean 1/16); frame 2 that
+        // pixel's whole block at 1.0. Squared distances of the block means: 1/256, 1, and
+        // between frames 1 and 2 (15/16)^2.
+        let device = cpu_device();
+        let mut values = vec![0.0f32; 3 * 8 * 8];
+        values[64 + 5 * 8 + 1] = 1.0;
+        for r in 4..8 {
+            for c in 0..4 {
+                values[128 + r * 8 + c] = 1.0;
+            }
+        }
+        let frames = Tensor::<4>::from_data(TensorData::new(values, [3, 1, 8, 8]), &device);
+        let d = to_vec(frame_block_distances(frames));
+        let w = (15.0f64 / 16.0).powi(2);
+        let want = [0.0, 1.0 / 256.0, 1.0, 1.0 / 256.0, 0.0, w, 1.0, w, 0.0];
+        assert_close(&d, &want, 1e-6, "block distances");
     }
 
     #[test]

@@ -656,6 +656,8 @@ fn loss_inputs_and_batch(
         sample_batch_reaching(data, &mut rng, n, reach)
     };
     let (frames, u) = batch_tensors(data, &batch, device);
+    let frame_distances = (config.loss.separation_weight > 0.0)
+        .then(|| crate::losses::frame_block_distances(frames.clone().narrow(0, n, n)));
     let (h, ahead) = if reach > 1 {
         // The frames `i_{t+k}` ride in the same encoder call as the others.
         let ahead_frames =
@@ -687,6 +689,7 @@ fn loss_inputs_and_batch(
         ),
         permutation,
         ahead,
+        frame_distances,
     };
     (inputs, batch)
 }
@@ -1332,6 +1335,9 @@ mod tests {
         config.loss.action_response_horizon = 3;
         config.loss.action_response_weight = 2.0;
         config.loss.action_response_turn_weight = 5.0;
+        config.loss.separation_weight = 3.0;
+        // A ratio far above any fresh latent's, so every pair is charged.
+        config.loss.separation_ratio = 10.0;
         // A floor above any fresh latent's spread, so the hinge is logged above 0.
         config.loss.variance_floor = Some(100.0);
         let device = crate::model::cpu_device();
@@ -1350,23 +1356,27 @@ mod tests {
             + loss.lambda_r * term("lyap")
             + loss.variance_weight * term("var")
             + loss.action_response_weight * term("flat")
-            + loss.action_response_turn_weight * term("turn");
+            + loss.action_response_turn_weight * term("turn")
+            + loss.separation_weight * term("sep");
         assert!(
             (recombined - values.total()).abs() <= 1e-4 * values.total().abs().max(1.0),
             "{values}: recombined {recombined}"
         );
         assert!(term("var") > 1.0 && term("flat") > 0.0, "{values}");
         assert!((0.0..=1.0).contains(&term("turn")), "{values}");
+        assert!(term("sep") > 0.0, "{values}");
 
         // Switched off, a term is logged as 0 and the header keeps its column.
         config.loss.action_response_weight = 0.0;
         config.loss.action_response_turn_weight = 0.0;
         config.loss.variance_floor = None;
+        config.loss.separation_weight = 0.0;
         let (inputs, _) = loss_inputs_and_batch(&model, &data, &config, 0, &device);
+        assert!(inputs.frame_distances.is_none());
         let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
             .into();
-        for name in ["var", "flat", "turn"] {
+        for name in ["var", "flat", "turn", "sep"] {
             assert_eq!(off.get(name), Some(0.0), "{off}");
         }
         assert_eq!(off.names, &LOSS_NAMES);
@@ -1385,13 +1395,13 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text,
-            "step,total,cpc,cons,curv,lyap,var,flat,turn,seconds\n\
-             1,5,1,2,0,0.5,,,,1.5\n2,4,1,1.5,0,0.4,,,,3\n"
+            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,seconds\n\
+             1,5,1,2,0,0.5,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,3\n"
         );
         // Under the current header rows are kept as they are.
         truncate_metrics(&path, 1, &header).expect("truncate again");
         let text = std::fs::read_to_string(&path).expect("read");
-        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,1.5\n"));
+        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,1.5\n"));
     }
 
     #[test]

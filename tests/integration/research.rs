@@ -74,6 +74,7 @@ fn risk_of_map(data: &Dataset, map: [[f32; 2]; 2], loss: &LossConfig, batches: u
             curvature_noise: (normal(&mut rng), normal(&mut rng), normal(&mut rng)),
             permutation,
             ahead: None,
+            frame_distances: None,
         };
         let terms = procl_loss(loss, &dynamics, inputs, data.meta.control_dt_s);
         total += to_vec(terms.lyap)[0] as f64;
@@ -331,10 +332,18 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         expected,
         cell("stop24_preset_action_response_turn_weight=3_k=10_velocity")
     );
+    let mut separated = expected.clone();
     expected.loss.variance_axes = procl::losses::VarianceAxes::Principal;
     assert_eq!(
         expected,
         cell("stop24_preset_action_response_turn_weight=3_k=10_velocity_variance_axes=principal")
+    );
+    // Stop 25: the turn term at weight 3 and the separation term.
+    separated.loss.separation_weight = 100.0;
+    separated.loss.separation_ratio = 0.1;
+    assert_eq!(
+        separated,
+        cell("stop25_preset_action_response_turn_weight=3_k=10_velocity_separation=100_rho=0.1")
     );
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.
