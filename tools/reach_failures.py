@@ -11,7 +11,7 @@ Reads an eval.json written by `procl eval` (it needs the per-episode `goal_confi
     or in free space, with how many of each ended more than 0.3 rad from the goal;
   - where the eval.json has them (since stop 25), by the latent: whether the arm still moved
     (joint speed > 0.05 rad/s after the last step), and how far its last latent was from the
-    goal's as a share of the first's (< 5%: PD had reached h*, so the latent folds two
+    goal's as a share of the first's (< 1%: PD had reached h*, so the latent folds two
     configurations onto one h).
 Standard library only:
   python3 tools/reach_failures.py runs/R/eval.json
@@ -92,7 +92,7 @@ def print_latent_gaps(method, threshold):
     moving = sum(speed > 0.05 for _, speed in rows)
     print(f"failures still moving (> 0.05 rad/s): {moving} of {len(rows)}")
     print("failures by the last latent's gap to h* (share of the first's):")
-    for low, high in [(0, 0.05), (0.05, 0.2), (0.2, math.inf)]:
+    for low, high in [(0, 0.01), (0.01, 0.2), (0.2, math.inf)]:
         n = sum(low <= gap < high for gap, _ in rows)
         print(f"  {low:.0%}..{'' if high == math.inf else f'{high:.0%}'}: {n}")
 
