@@ -152,8 +152,7 @@ fn default_action_response_horizon() -> usize {
 }
 
 /// The ratio below which about 0.5% of a trained reacher latent's pairs fall (stop 25), so a
-/// sound chart is charged
-/// little.
+/// sound chart is charged little.
 fn default_separation_ratio() -> f64 {
     0.1
 }
