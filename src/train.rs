@@ -271,6 +271,12 @@ impl TrainConfig {
                 // axes; the action response measures and removes the whole rotation
                 // (docs/method.md, Fetch-3D: 64-84% with the risk search, 94-100% with this).
                 config.orientation_criterion = OrientationCriterion::ActionResponse;
+                // PD on a latent `h = J p` is stable only where every eigenvalue `r e^{i theta}`
+                // of `a_max J` has `r > (Kp / Kd^2) sin^2 theta / cos theta`: a latent turned
+                // against the gripper axes, or short along one, orbits its goal. At Kd = 2 (Kp
+                // = 10) 40 of seed 1's 45 failures still moved after 250 steps; at Kd = 4 the
+                // bound is 4 times lower (docs/method.md, Fetch stop 25: 95.5% -> 99.5%).
+                config.loss.kd = 4.0;
             }
         }
         config
@@ -1214,6 +1220,12 @@ mod tests {
         );
         let paper = TrainConfig::preset(Preset::Paper, Method::Procl, EnvKind::Fetch);
         assert_eq!(paper.orientation_search_every, 0);
+        // Fetch's latent PD is damped harder than the paper's Kd = 2, for both latent methods.
+        assert_eq!(paper.loss.kd, 2.0);
+        for method in [Method::Procl, Method::Pc3] {
+            let fetch = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
+            assert_eq!((fetch.loss.kp, fetch.loss.kd), (10.0, 4.0));
+        }
     }
 
     #[test]

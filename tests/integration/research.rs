@@ -683,10 +683,23 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     }
     let (_, risk) = configs.iter().find(|(n, _)| n == "risk-search").unwrap();
     assert_eq!((risk.orientation_margin, risk.orientation_streak), (0.0, 3));
-    // Stop 23: the Fetch preset without the velocity term in `V`.
+    // Cells measured before stop 25 keep that preset's Kd = 2.
+    for (name, method) in [
+        ("stop14_kd=2", Method::Procl),
+        ("pc3_stop14_kd=2", Method::Pc3),
+    ] {
+        let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
+        let mut expected = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
+        expected.steps = cell.steps;
+        expected.loss.kd = 2.0;
+        assert_eq!(&expected, cell, "{name}");
+    }
+    assert_eq!(risk.loss.kd, 2.0);
+    // Stop 23: the Fetch preset of then without the velocity term in `V`.
     let (_, q_v_0) = configs.iter().find(|(n, _)| n == "stop23_q_v=0").unwrap();
     let mut expected = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Fetch);
     expected.steps = q_v_0.steps;
+    expected.loss.kd = 2.0;
     expected.loss.q_v = 0.0;
     assert_eq!(&expected, q_v_0);
     // Stop 24: a lighter velocity term.
