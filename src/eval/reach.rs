@@ -82,8 +82,8 @@ pub struct EpisodeRecord {
     pub goal_latent: Vec<f64>,
     /// The goal's true configuration.
     pub goal_config: Vec<f64>,
-    /// True joint velocity `qd` after the last step: whether an episode that ended short of
-    /// its goal had stopped there.
+    /// True velocity `qd` after the last step (joint rates, or Fetch's gripper velocity):
+    /// whether an episode that ended short of its goal had stopped there.
     pub final_velocity: Vec<f64>,
     /// The fingertip's distance to the goal's after the last step (m; the reacher only, see
     /// [`crate::envs::Env::fingertip_distance_m`]).
@@ -160,7 +160,7 @@ pub struct MethodSummary {
     pub goal_configs: Vec<Vec<f64>>,
     #[serde(default)]
     pub final_configs: Vec<Vec<f64>>,
-    /// Each episode's true joint velocity after the last step.
+    /// Each episode's true velocity `qd` after the last step.
     #[serde(default)]
     pub final_velocities: Vec<Vec<f64>>,
     /// For latent policies, each episode's goal latent `h*` and the latent `h` of its first
