@@ -672,28 +672,24 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     // `risk-search` cells the stop-13 rule they replaced.
     let grid = procl::ablate::Grid::from_toml(&root.join("fetch.toml")).unwrap();
     let configs = grid.cell_configs(EnvKind::Fetch).unwrap();
-    for (name, method) in [
-        ("action-response", Method::Procl),
-        ("pc3_action-response", Method::Pc3),
-    ] {
-        let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
-        let mut preset = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
-        preset.steps = cell.steps;
-        assert_eq!(&preset, cell, "{name}");
-    }
-    let (_, risk) = configs.iter().find(|(n, _)| n == "risk-search").unwrap();
-    assert_eq!((risk.orientation_margin, risk.orientation_streak), (0.0, 3));
-    // Cells measured before stop 25 keep that preset's Kd = 2.
-    for (name, method) in [
-        ("stop14_kd=2", Method::Procl),
-        ("pc3_stop14_kd=2", Method::Pc3),
+    // Cells measured before stop 25 keep that preset's Kd = 2 (`Some`); the others are the
+    // preset as it is (`None`).
+    for (name, method, kd) in [
+        ("action-response", Method::Procl, None),
+        ("pc3_action-response", Method::Pc3, None),
+        ("stop14_kd=2", Method::Procl, Some(2.0)),
+        ("pc3_stop14_kd=2", Method::Pc3, Some(2.0)),
     ] {
         let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
         let mut expected = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
         expected.steps = cell.steps;
-        expected.loss.kd = 2.0;
+        if let Some(kd) = kd {
+            expected.loss.kd = kd;
+        }
         assert_eq!(&expected, cell, "{name}");
     }
+    let (_, risk) = configs.iter().find(|(n, _)| n == "risk-search").unwrap();
+    assert_eq!((risk.orientation_margin, risk.orientation_streak), (0.0, 3));
     assert_eq!(risk.loss.kd, 2.0);
     // Stop 23: the Fetch preset of then without the velocity term in `V`.
     let (_, q_v_0) = configs.iter().find(|(n, _)| n == "stop23_q_v=0").unwrap();
