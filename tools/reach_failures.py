@@ -28,8 +28,11 @@ NEAR_LIMIT = math.radians(5)
 def main():
     if len(sys.argv) != 2:
         raise SystemExit(__doc__)
-    with open(sys.argv[1]) as f:
-        report = json.load(f)
+    try:
+        with open(sys.argv[1]) as f:
+            report = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise SystemExit(f"{sys.argv[1]}: {e}")
     method = report["methods"][0]
     threshold = report["protocol"]["success_threshold"]
     if not method.get("final_configs"):
