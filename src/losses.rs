@@ -137,6 +137,21 @@ pub struct LossConfig {
     /// `rho` of the separation term (see [`LossConfig::separation_weight`]); > 0.
     #[serde(default = "default_separation_ratio")]
     pub separation_ratio: f64,
+    /// Feature-decoder term: adds `decoder_weight * sum_f mean_i (D(h_i + s eta_i)_f -
+    /// phi_if)^2 / sum_f var_i(phi_if)` (0: off, the paper). `phi [n, F]` are the keypoint head's
+    /// features of the frames `i_t` (held fixed: the term moves `h` and the decoder `D`, not
+    /// the features), `eta` standard normal, and `s = decoder_noise` times the batch's standard
+    /// deviation of `h` per coordinate. It is the share of the features' variance that `h`
+    /// cannot give back, so a latent that folds two configurations with different features
+    /// onto one point pays for it wherever the fold lies, from every sample near it; the noise
+    /// keeps `D` from resolving a fold by growing steep. Needs `model.feature_decoder_width >
+    /// 0`.
+    #[serde(default)]
+    pub decoder_weight: f64,
+    /// Noise of the feature-decoder term, as a share of `h`'s batch standard deviation (see
+    /// [`LossConfig::decoder_weight`]); >= 0.
+    #[serde(default = "default_decoder_noise")]
+    pub decoder_noise: f64,
     /// Diagnostic, not a method: adds `state_supervision_weight * mean ||h_t - s(q_t)||^2`,
     /// where `s` standardises the dataset's true configuration `q` per coordinate (0: off, the
     /// paper and every preset). The method itself never sees states. With it on, PD on the
@@ -155,6 +170,11 @@ fn default_action_response_horizon() -> usize {
 /// sound chart is charged little.
 fn default_separation_ratio() -> f64 {
     0.1
+}
+
+/// About a tenth of a 0.1 rad reacher motion's share of the latent's spread.
+fn default_decoder_noise() -> f64 {
+    0.05
 }
 
 fn default_action_response_regions() -> usize {
@@ -346,6 +366,30 @@ pub fn separation_loss(h: Tensor<2>, frame_distances: Tensor<2>, ratio: f64) -> 
     shortfall.powi_scalar(2).sum().reshape([1]) / (pairs * ratio * ratio)
 }
 
+/// The feature-decoder term (see [`LossConfig::decoder_weight`]): the squared reconstruction
+/// error of `decoded [n, F]` against `features [n, F]` (held fixed), both centred on their batch
+/// means, summed over features, over the features' total batch variance. 1 for a decoder
+/// that outputs a constant, 0 for an exact one. Only the spread is compared: the features'
+/// mean says nothing about folds, and it drifts while the keypoints train. Pooling the
+/// variance (rather than standardising each feature) keeps a feature that barely varies from
+/// dominating: at initialisation some keypoints sit still.
+pub fn feature_reconstruction_loss(decoded: Tensor<2>, features: Tensor<2>) -> Tensor<1> {
+    let features = features.detach();
+    let [n, width] = features.dims();
+    let device = features.device();
+    if n < 2 || width == 0 {
+        return Tensor::zeros([1], &device);
+    }
+    let centred = |x: Tensor<2>| x.clone() - x.mean_dim(0);
+    let features = centred(features);
+    let variance = features.clone().powi_scalar(2).mean_dim(0).sum(); // [1]
+    let error = (centred(decoded) - features)
+        .powi_scalar(2)
+        .mean_dim(0)
+        .sum(); // [1]
+    error.reshape([1]) / variance.reshape([1]).add_scalar(1e-12)
+}
+
 /// Squared distances `[n, n]` between frames `[n, c, rows, cols]` (rows and cols multiples of
 /// 4), each averaged over 4x4 pixel blocks first: the separation term's `D`. The averaging
 /// widens the range over which the distance grows with a small motion from a link's width
@@ -426,6 +470,8 @@ impl Default for LossConfig {
             action_response_regions: default_action_response_regions(),
             separation_weight: 0.0,
             separation_ratio: default_separation_ratio(),
+            decoder_weight: 0.0,
+            decoder_noise: default_decoder_noise(),
             state_supervision_weight: 0.0,
         }
     }
@@ -469,6 +515,8 @@ impl LossConfig {
                 self.action_response_turn_weight,
             ),
             ("loss.separation_weight", self.separation_weight),
+            ("loss.decoder_weight", self.decoder_weight),
+            ("loss.decoder_noise", self.decoder_noise),
             (
                 "loss.state_supervision_weight",
                 self.state_supervision_weight,
@@ -677,6 +725,9 @@ pub struct LossInputs {
     pub ahead: Option<(Tensor<2>, Tensor<2>)>,
     /// For the separation term (on): squared distances between the frames `i_t`, `[n, n]`.
     pub frame_distances: Option<Tensor<2>>,
+    /// For the feature-decoder term (on): the decoder's output from the noisy `h_t` and the
+    /// keypoint features of `i_t`, `[n, F]` each.
+    pub decoded_features: Option<(Tensor<2>, Tensor<2>)>,
 }
 
 /// The loss terms of one step (unweighted) and the weighted total. A term that is switched
@@ -695,12 +746,14 @@ pub struct LossTerms {
     pub turn: Tensor<1>,
     /// The separation term: pairs of different-looking frames with too close latents.
     pub sep: Tensor<1>,
+    /// The feature-decoder term: the share of the keypoint features `h` cannot give back.
+    pub dec: Tensor<1>,
     pub total: Tensor<1>,
 }
 
 /// Names of the logged terms, in [`LossValues::as_array`] order.
-pub const LOSS_NAMES: [&str; 9] = [
-    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn", "sep",
+pub const LOSS_NAMES: [&str; 10] = [
+    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn", "sep", "dec",
 ];
 
 /// Loss values read back to the host, for logging.
@@ -715,13 +768,14 @@ pub struct LossValues {
     pub flat: f64,
     pub turn: f64,
     pub sep: f64,
+    pub dec: f64,
 }
 
 impl LossValues {
-    pub fn as_array(&self) -> [f64; 9] {
+    pub fn as_array(&self) -> [f64; 10] {
         [
             self.total, self.cpc, self.cons, self.curv, self.lyap, self.var, self.flat, self.turn,
-            self.sep,
+            self.sep, self.dec,
         ]
     }
     pub fn is_finite(&self) -> bool {
@@ -742,6 +796,7 @@ impl LossTerms {
             &self.flat,
             &self.turn,
             &self.sep,
+            &self.dec,
         ]);
         LossValues {
             total: v[0],
@@ -753,6 +808,7 @@ impl LossTerms {
             flat: v[6],
             turn: v[7],
             sep: v[8],
+            dec: v[9],
         }
     }
 }
@@ -775,12 +831,17 @@ pub fn procl_loss(
         permutation,
         ahead,
         frame_distances,
+        decoded_features,
     } = inputs;
     let h_now_for_variance = h_now.clone();
     let device = h_now.device();
     let zero = || Tensor::<1>::zeros([1], &device);
     let sep = match frame_distances.filter(|_| config.separation_weight > 0.0) {
         Some(frames) => separation_loss(h_now.clone(), frames, config.separation_ratio),
+        None => zero(),
+    };
+    let dec = match decoded_features.filter(|_| config.decoder_weight > 0.0) {
+        Some((decoded, features)) => feature_reconstruction_loss(decoded, features),
         None => zero(),
     };
     let (flat, turn) = if config.reads_action_response() {
@@ -903,7 +964,8 @@ pub fn procl_loss(
         + var.clone() * config.variance_weight
         + flat.clone() * config.action_response_weight
         + turn.clone() * config.action_response_turn_weight
-        + sep.clone() * config.separation_weight;
+        + sep.clone() * config.separation_weight
+        + dec.clone() * config.decoder_weight;
     if config.decorrelation_weight > 0.0 {
         total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
     }
@@ -916,6 +978,7 @@ pub fn procl_loss(
         flat,
         turn,
         sep,
+        dec,
         total,
     }
 }
@@ -1330,6 +1393,40 @@ mod tests {
         let g = to_vec(collided.grad(&loss.backward()).expect("gradient of h"));
         // Rows 1 and 2 are 0.1 apart in x: descent (-g) moves row 1 left and row 2 right.
         assert!(-g[2] < 0.0 && -g[4] > 0.0, "{g:?}");
+    }
+
+    #[test]
+    fn feature_reconstruction_is_the_share_of_the_centred_features_variance_left() {
+        // Features (0, 0) and (2, 4): centred (-1, -2) and (1, 2), total variance 1 + 4 = 5.
+        let device = cpu_device();
+        let features = t2(&[0.0, 0.0, 2.0, 4.0], 2, 2, &device);
+        let loss = |decoded: &[f32]| {
+            scalar(feature_reconstruction_loss(
+                t2(decoded, 2, 2, &device),
+                features.clone(),
+            ))
+        };
+        // A constant decoder leaves all of it; an offset does not count.
+        assert!((loss(&[3.0, -1.0, 3.0, -1.0]) - 1.0).abs() < 1e-6);
+        assert!(loss(&[7.0, 7.0, 9.0, 11.0]).abs() < 1e-6);
+        // (1, 1) and (3, 3), centred (-1, -1) and (1, 1): feature 0 exact, feature 1 off by 1
+        // in both rows, so 1 / 5.
+        let got = loss(&[1.0, 1.0, 3.0, 3.0]);
+        assert!((got - 0.2).abs() < 1e-6, "{got}");
+        // The features are targets: the gradient reaches the decoded values only.
+        let device = device.autodiff();
+        let features = t2(&[0.0, 0.0, 2.0, 4.0], 2, 2, &device).require_grad();
+        let decoded = t2(&[1.0, 1.0, 3.0, 3.0], 2, 2, &device).require_grad();
+        let grads = feature_reconstruction_loss(decoded.clone(), features.clone()).backward();
+        assert!(features.grad(&grads).is_none());
+        // d/d decoded of sum_f mean_i (c_if - phi_if)^2 / 5 with centring: feature 1's rows
+        // are 1 above and 1 below their targets, so 2 * (1, -1) / (2 * 5) = (0.2, -0.2).
+        let g = to_vec(
+            decoded
+                .grad(&grads)
+                .expect("gradient of the decoded features"),
+        );
+        assert_close(&g, &[0.0, 0.2, 0.0, -0.2], 1e-6, "gradient");
     }
 
     #[test]

@@ -344,6 +344,15 @@ impl TrainConfig {
         if self.checkpoint_every == 0 {
             return Err(Error::config("checkpoint_every", "must be at least 1"));
         }
+        if self.loss.decoder_weight > 0.0 && self.model.feature_decoder_width == 0 {
+            return Err(Error::config(
+                "loss.decoder_weight",
+                format!(
+                    "{} needs a feature decoder: set model.feature_decoder_width > 0",
+                    self.loss.decoder_weight
+                ),
+            ));
+        }
         if self.orientation_search_every > 0
             && !self
                 .checkpoint_every
@@ -664,22 +673,29 @@ fn loss_inputs_and_batch(
     let (frames, u) = batch_tensors(data, &batch, device);
     let frame_distances = (config.loss.separation_weight > 0.0)
         .then(|| crate::losses::frame_block_distances(frames.clone().narrow(0, n, n)));
-    let (h, ahead) = if reach > 1 {
-        // The frames `i_{t+k}` ride in the same encoder call as the others.
+    // The frames `i_{t+k}` ride in the same encoder call as the others.
+    let frames = if reach > 1 {
         let ahead_frames =
             frames_to_tensor(batch.iter().map(|&(e, t)| data.frame(e, t + reach)), device);
-        let h = model
-            .encoder
-            .forward(Tensor::cat(vec![frames, ahead_frames], 0)); // [4n, du]
+        Tensor::cat(vec![frames, ahead_frames], 0)
+    } else {
+        frames
+    };
+    let decoder = model
+        .feature_decoder
+        .as_ref()
+        .filter(|_| config.loss.decoder_weight > 0.0);
+    let (h, features) = match decoder {
+        Some(_) => model.encoder.forward_with_features(frames),
+        None => (model.encoder.forward(frames), None),
+    }; // [3n or 4n, du]
+    let ahead = (reach > 1).then(|| {
         let drive = TensorData::new(k_step_drive(data, &batch, reach), [n, du]);
-        let ahead = (
+        (
             h.clone().narrow(0, 3 * n, n),
             Tensor::from_data(drive, device),
-        );
-        (h, Some(ahead))
-    } else {
-        (model.encoder.forward(frames), None) // [3n, du]
-    };
+        )
+    });
     let mut permutation: Vec<usize> = (0..n).collect();
     permutation.shuffle(&mut rng);
     let inputs = LossInputs {
@@ -696,6 +712,18 @@ fn loss_inputs_and_batch(
         permutation,
         ahead,
         frame_distances,
+        decoded_features: None,
+    };
+    // Drawn last, so switching the term on leaves every other draw of the step as it was.
+    let decoded_features = decoder.zip(features).map(|(decoder, features)| {
+        let h_now = inputs.h_now.clone();
+        let spread = h_now.clone().detach().var_bias(0).sqrt(); // [1, du]
+        let noise = normal_tensor(&mut rng, n, du, device) * spread * config.loss.decoder_noise;
+        (decoder.forward(h_now + noise), features.narrow(0, n, n))
+    });
+    let inputs = LossInputs {
+        decoded_features,
+        ..inputs
     };
     (inputs, batch)
 }
@@ -1350,6 +1378,8 @@ mod tests {
         config.loss.separation_weight = 3.0;
         // A ratio far above any fresh latent's, so every pair is charged.
         config.loss.separation_ratio = 10.0;
+        config.loss.decoder_weight = 2.0;
+        config.model.feature_decoder_width = 8;
         // A floor above any fresh latent's spread, so the hinge is logged above 0.
         config.loss.variance_floor = Some(100.0);
         let device = crate::model::cpu_device();
@@ -1369,7 +1399,8 @@ mod tests {
             + loss.variance_weight * term("var")
             + loss.action_response_weight * term("flat")
             + loss.action_response_turn_weight * term("turn")
-            + loss.separation_weight * term("sep");
+            + loss.separation_weight * term("sep")
+            + loss.decoder_weight * term("dec");
         assert!(
             (recombined - values.total()).abs() <= 1e-4 * values.total().abs().max(1.0),
             "{values}: recombined {recombined}"
@@ -1377,18 +1408,21 @@ mod tests {
         assert!(term("var") > 1.0 && term("flat") > 0.0, "{values}");
         assert!((0.0..=1.0).contains(&term("turn")), "{values}");
         assert!(term("sep") > 0.0, "{values}");
+        // The decoder starts constant: it leaves all of the features' variance.
+        assert!((term("dec") - 1.0).abs() < 1e-5, "{values}");
 
         // Switched off, a term is logged as 0 and the header keeps its column.
         config.loss.action_response_weight = 0.0;
         config.loss.action_response_turn_weight = 0.0;
         config.loss.variance_floor = None;
         config.loss.separation_weight = 0.0;
+        config.loss.decoder_weight = 0.0;
         let (inputs, _) = loss_inputs_and_batch(&model, &data, &config, 0, &device);
-        assert!(inputs.frame_distances.is_none());
+        assert!(inputs.frame_distances.is_none() && inputs.decoded_features.is_none());
         let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
             .into();
-        for name in ["var", "flat", "turn", "sep"] {
+        for name in ["var", "flat", "turn", "sep", "dec"] {
             assert_eq!(off.get(name), Some(0.0), "{off}");
         }
         assert_eq!(off.names, &LOSS_NAMES);
@@ -1407,13 +1441,13 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text,
-            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,seconds\n\
-             1,5,1,2,0,0.5,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,3\n"
+            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,seconds\n\
+             1,5,1,2,0,0.5,,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,,3\n"
         );
         // Under the current header rows are kept as they are.
         truncate_metrics(&path, 1, &header).expect("truncate again");
         let text = std::fs::read_to_string(&path).expect("read");
-        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,1.5\n"));
+        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,,1.5\n"));
     }
 
     #[test]

@@ -179,6 +179,28 @@ impl EncoderConfig {
         }
     }
 
+    /// Width `F` of the keypoint head's features (the K angles and K radii, or x and y, then
+    /// the Cartesian extras and the pairwise angles when on); `None` for the MLP head.
+    pub fn keypoint_feature_count(&self) -> Option<usize> {
+        let EncoderHead::SoftArgmax {
+            keypoints,
+            polar,
+            with_cartesian,
+            pairwise_angles,
+            ..
+        } = self.head
+        else {
+            return None;
+        };
+        let per_keypoint = if polar && with_cartesian { 4 } else { 2 };
+        let pairs = if polar && pairwise_angles {
+            keypoints * (keypoints - 1) / 2
+        } else {
+            0
+        };
+        Some(per_keypoint * keypoints + pairs)
+    }
+
     pub(crate) fn validate(&self) -> Result<()> {
         if let Some(cut) = self.polar_cut_deg
             && !cut.is_finite()
@@ -340,13 +362,8 @@ impl EncoderConfig {
                 let pairwise_angles = polar && pairwise_angles;
                 let linear_base = pairwise_angles && linear_base && hidden > 0;
                 // The linear base takes the K angles; the tanh layer gets everything else.
-                let features = if with_cartesian { 4 } else { 2 } * keypoints
-                    - if linear_base { keypoints } else { 0 }
-                    + if pairwise_angles {
-                        keypoints * (keypoints - 1) / 2
-                    } else {
-                        0
-                    };
+                let features = self.keypoint_feature_count().unwrap_or(0)
+                    - if linear_base { keypoints } else { 0 };
                 let base = linear_base.then(|| LinearConfig::new(keypoints, 1).init(device));
                 let out_dim = self.latent_dim - usize::from(linear_base);
                 let (hidden_layer, out_inputs) = if hidden == 0 {
@@ -464,13 +481,14 @@ impl Encoder {
     pub fn forward(&self, frames: Tensor<4>) -> Tensor<2> {
         // Rows are samples: h = raw Q^T.
         self.forward_unoriented(frames)
+            .0
             .matmul(self.latent_transform.val().transpose())
     }
 
     /// Rescales the head's output layer so the latent of `frames` has zero mean and standard
     /// deviation `target_std` in every dimension (data-dependent initialisation).
     pub fn normalise_latent_scale(mut self, frames: Tensor<4>, target_std: f64) -> Self {
-        let raw = self.forward_unoriented(frames).detach(); // [n, du]
+        let raw = self.forward_unoriented(frames).0.detach(); // [n, du]
         let mean = raw.clone().mean_dim(0); // [1, du]
         let std = (raw - mean.clone())
             .powi_scalar(2)
@@ -577,15 +595,24 @@ impl Encoder {
         Some([v[0], v[1]])
     }
 
-    /// The head's output before the orientation `Q`.
-    fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
+    /// `h` of `frames` (as [`Encoder::forward`]) and, for the keypoint head, the keypoint
+    /// features `[n, F]` it was computed from (see [`EncoderConfig::keypoint_feature_count`]);
+    /// the feature decoder reconstructs these.
+    pub fn forward_with_features(&self, frames: Tensor<4>) -> (Tensor<2>, Option<Tensor<2>>) {
+        let (raw, features) = self.forward_unoriented(frames);
+        let h = raw.matmul(self.latent_transform.val().transpose());
+        (h, features)
+    }
+
+    /// The head's output before the orientation `Q`, and the keypoint features it read.
+    fn forward_unoriented(&self, frames: Tensor<4>) -> (Tensor<2>, Option<Tensor<2>>) {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
         let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16], or 32x32 at stride 1
         if let Some(head) = &self.mlp {
             let x = relu(head.conv3.forward(x)); // [n, 32, 8, 8]
             let n = x.dims()[0];
             let x = relu(head.fc1.forward(x.reshape([n, 32 * 8 * 8]))); // [n, hidden]
-            return head.fc2.forward(x); // [n, du]
+            return (head.fc2.forward(x), None); // [n, du]
         }
         let head = self
             .keypoints
@@ -651,7 +678,10 @@ impl Encoder {
             Some((x, y)) => Tensor::cat(vec![keypoints, pairwise_angles(x, y)], 1),
             None => keypoints,
         };
-        head.latent_from_features(keypoints)
+        (
+            head.latent_from_features(keypoints.clone()),
+            Some(keypoints),
+        )
     }
 }
 

@@ -75,6 +75,7 @@ fn risk_of_map(data: &Dataset, map: [[f32; 2]; 2], loss: &LossConfig, batches: u
             permutation,
             ahead: None,
             frame_distances: None,
+            decoded_features: None,
         };
         let terms = procl_loss(loss, &dynamics, inputs, data.meta.control_dt_s);
         total += to_vec(terms.lyap)[0] as f64;
@@ -344,6 +345,20 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     assert_eq!(
         separated,
         cell("stop25_preset_action_response_turn_weight=3_k=10_velocity_separation=100_rho=0.1")
+    );
+    // Stop 26: the turn term at weight 3 and the feature decoder.
+    let mut decoded = separated.clone();
+    (
+        decoded.loss.separation_weight,
+        decoded.loss.separation_ratio,
+    ) = (0.0, 0.1);
+    (decoded.loss.decoder_weight, decoded.loss.decoder_noise) = (3.0, 0.05);
+    decoded.model.feature_decoder_width = 64;
+    assert_eq!(
+        decoded,
+        cell(
+            "stop26_preset_action_response_turn_weight=3_k=10_velocity_decoder=3_width=64_noise=0.05"
+        )
     );
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.
