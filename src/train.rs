@@ -716,10 +716,17 @@ fn loss_inputs_and_batch(
     };
     // Drawn last, so switching the term on leaves every other draw of the step as it was.
     let decoded_features = decoder.zip(features).map(|(decoder, features)| {
-        let h_now = inputs.h_now.clone();
+        let features = features.narrow(0, n, n);
+        let h_now = match config.loss.decoder_head_only {
+            true => model
+                .encoder
+                .latent_from_features(features.clone().detach()),
+            false => None,
+        }
+        .unwrap_or_else(|| inputs.h_now.clone());
         let spread = h_now.clone().detach().var_bias(0).sqrt(); // [1, du]
         let noise = normal_tensor(&mut rng, n, du, device) * spread * config.loss.decoder_noise;
-        (decoder.forward(h_now + noise), features.narrow(0, n, n))
+        (decoder.forward(h_now + noise), features)
     });
     let inputs = LossInputs {
         decoded_features,
@@ -1410,6 +1417,32 @@ mod tests {
         assert!(term("sep") > 0.0, "{values}");
         // The decoder starts constant: it leaves all of the features' variance.
         assert!((term("dec") - 1.0).abs() < 1e-5, "{values}");
+        // Decoding an h recomputed from the held features changes where the gradient goes,
+        // not what is decoded (the head's own test checks the gradient). A drawn output layer,
+        // so the decoder is not constant.
+        let mut drawn = model.clone();
+        let width = config
+            .model
+            .encoder
+            .keypoint_feature_count()
+            .expect("keypoints");
+        drawn.feature_decoder = Some(crate::model::FeatureDecoder::new(2, 8, width, &device));
+        let decoded = |config: &TrainConfig| {
+            let (inputs, _) = loss_inputs_and_batch(&drawn, &data, config, 0, &device);
+            let (decoded, features) = inputs.decoded_features.expect("decoder on");
+            (
+                crate::model::to_vec(decoded),
+                crate::model::to_vec(features),
+            )
+        };
+        let whole = decoded(&config);
+        assert!(whole.0.iter().any(|&x| x != 0.0));
+        config.loss.decoder_head_only = true;
+        let (head_only, features) = decoded(&config);
+        assert_eq!(features, whole.1);
+        for (a, b) in head_only.iter().zip(&whole.0) {
+            assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "{a} vs {b}");
+        }
 
         // Switched off, a term is logged as 0 and the header keeps its column.
         config.loss.action_response_weight = 0.0;

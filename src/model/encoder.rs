@@ -604,6 +604,14 @@ impl Encoder {
         (h, features)
     }
 
+    /// `h` from keypoint features `[n, F]` (as [`Encoder::forward_with_features`] gives them):
+    /// the head's layers after the keypoints, then the orientation. `None` for the MLP head.
+    pub fn latent_from_features(&self, features: Tensor<2>) -> Option<Tensor<2>> {
+        let head = self.keypoints.as_ref()?;
+        let raw = head.latent_from_features(features);
+        Some(raw.matmul(self.latent_transform.val().transpose()))
+    }
+
     /// The head's output before the orientation `Q`, and the keypoint features it read.
     fn forward_unoriented(&self, frames: Tensor<4>) -> (Tensor<2>, Option<Tensor<2>>) {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
@@ -1254,6 +1262,39 @@ mod tests {
         {
             assert!((got - want).abs() < 0.01, "{angle:?}");
         }
+    }
+
+    #[test]
+    fn latent_from_held_features_reshapes_only_the_head_after_the_keypoints() {
+        let device = cpu_device().autodiff();
+        let mut config = EncoderConfig::new(2);
+        config.head = EncoderHead::SoftArgmax {
+            keypoints: 4,
+            hidden: 8,
+            polar: true,
+            with_cartesian: false,
+            pairwise_angles: true,
+            linear_base: false,
+        };
+        let encoder = reinit_params(config.init(&device), 5);
+        let frames = Tensor::<4>::random(
+            [3, 3, 64, 64],
+            burn::tensor::Distribution::Uniform(-0.5, 0.5),
+            &device,
+        );
+        let (h, features) = encoder.forward_with_features(frames);
+        let features = features.expect("keypoint features");
+        // 4 angles, 4 radii and 6 pairwise angles.
+        assert_eq!(features.dims(), [3, 14]);
+        let again = encoder
+            .latent_from_features(features.detach())
+            .expect("keypoint head");
+        assert_eq!(to_vec(again.clone()), to_vec(h));
+        let grads = again.sum().backward();
+        let head = encoder.keypoints.as_ref().expect("keypoint head");
+        assert!(head.out.weight.grad(&grads).is_some());
+        assert!(head.features.weight.grad(&grads).is_none());
+        assert!(encoder.conv1.weight.grad(&grads).is_none());
     }
 
     #[test]

@@ -360,6 +360,17 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
             "stop26_preset_action_response_turn_weight=3_k=10_velocity_decoder=3_width=64_noise=0.05"
         )
     );
+    decoded.loss.decoder_weight = 1.0;
+    (
+        decoded.loss.decoder_standardise,
+        decoded.loss.decoder_head_only,
+    ) = (true, true);
+    assert_eq!(
+        decoded,
+        cell(
+            "stop26_preset_action_response_turn_weight=3_k=10_velocity_decoder=1_standardised_head-only"
+        )
+    );
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.
     let stop13_design = cell("tanh-head_std1_floor=10");
