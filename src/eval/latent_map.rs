@@ -26,6 +26,11 @@ pub struct LatentDiagnostics {
     /// linear R^2 scores low (the reacher's ring-shaped latents), near 0 when h forgets q.
     #[serde(default)]
     pub knn_r2: f64,
+    /// Share of the grid's far-apart pairs that the latent folds together (see
+    /// [`folded_share`]): 0 for an injective map whatever its shape. The 5-NN R^2 averages
+    /// folds away when they are small; PD stops on them (docs/method.md, stop 25).
+    #[serde(default)]
+    pub folded_share: f64,
     /// Grid points encoded.
     pub points: usize,
 }
@@ -43,6 +48,50 @@ pub fn determinant(m: &[Vec<f64>]) -> Option<f64> {
                 + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]),
         ),
         _ => None,
+    }
+}
+
+/// A pair counts as far apart when its configuration distance exceeds this share of the mean
+/// over all pairs: on the reacher's grid about 0.5 rad, five times the success threshold.
+const FOLD_FAR: f64 = 0.25;
+/// ... and as folded together when its latent distance is under this share of the mean.
+const FOLD_CLOSE: f64 = 0.02;
+
+/// The share of pairs of `configs` further apart than [`FOLD_FAR`] times their mean distance
+/// whose `latents` lie closer than [`FOLD_CLOSE`] times theirs: the pairs PD on the latent
+/// cannot tell apart. 0 with fewer than 2 points or no far pair.
+pub fn folded_share(latents: &[Vec<f64>], configs: &[Vec<f64>]) -> f64 {
+    let distance = |a: &[f64], b: &[f64]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    };
+    let n = configs.len().min(latents.len());
+    let pairs: Vec<(f64, f64)> = (0..n)
+        .flat_map(|i| (i + 1..n).map(move |j| (i, j)))
+        .map(|(i, j)| {
+            (
+                distance(&configs[i], &configs[j]),
+                distance(&latents[i], &latents[j]),
+            )
+        })
+        .collect();
+    if pairs.is_empty() {
+        return 0.0;
+    }
+    let mean =
+        |pick: fn(&(f64, f64)) -> f64| pairs.iter().map(pick).sum::<f64>() / pairs.len() as f64;
+    let (far, close) = (FOLD_FAR * mean(|p| p.0), FOLD_CLOSE * mean(|p| p.1));
+    let far_pairs = pairs.iter().filter(|p| p.0 > far);
+    let (count, folded) = far_pairs.fold((0usize, 0usize), |(count, folded), p| {
+        (count + 1, folded + usize::from(p.1 < close))
+    });
+    if count == 0 {
+        0.0
+    } else {
+        folded as f64 / count as f64
     }
 }
 
@@ -258,6 +307,7 @@ pub fn latent_diagnostics(
             let r2 = knn_r2(&latents, &configs, 5);
             r2.iter().sum::<f64>() / r2.len().max(1) as f64
         },
+        folded_share: folded_share(&latents, &configs),
         points: configs.len(),
     })
 }
@@ -332,6 +382,32 @@ mod tests {
         ];
         assert!((determinant(&m).unwrap() - 1.0).abs() < 1e-12);
         assert_eq!(determinant(&[vec![1.0, 2.0]]), None);
+    }
+
+    #[test]
+    fn folded_share_counts_far_pairs_the_latent_puts_together() {
+        let configs = grid();
+        // Any injective map, however curved, folds nothing.
+        let curled: Vec<Vec<f64>> = configs
+            .iter()
+            .map(|q| {
+                let (r, a) = (1.0 + q[1], 4.0 * q[0]);
+                vec![r * a.cos(), r * a.sin()]
+            })
+            .collect();
+        assert_eq!(folded_share(&curled, &configs), 0.0);
+        // Folding x about 0.5 puts (x, y) and (1 - x, y) on one point. The mean distance over
+        // the 400 * 399 / 2 pairs is 0.5495, so pairs more than 0.1374 apart are far: 76230 of
+        // them (numpy). The folded ones are the mirror pairs k / 19 and 1 - k / 19 of a row
+        // with |19 - 2k| / 19 > 0.1374, k = 0..=8: 9 per row, 180 in all (every other pair's
+        // latents differ by at least the grid step 1/19, far above 0.02 of their mean).
+        let folded: Vec<Vec<f64>> = configs
+            .iter()
+            .map(|q| vec![(q[0] - 0.5).abs(), q[1]])
+            .collect();
+        let got = folded_share(&folded, &configs);
+        assert!((got - 180.0 / 76230.0).abs() < 1e-9, "{got}");
+        assert_eq!(folded_share(&[], &[]), 0.0);
     }
 
     #[test]
