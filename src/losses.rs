@@ -140,15 +140,15 @@ pub struct LossConfig {
     /// Feature-decoder term: adds `decoder_weight * sum_f mean_i (D(h_i + s eta_i)_f -
     /// phi_if)^2 / sum_f var_i(phi_if)` (0: off, the paper). `phi [n, F]` are the keypoint head's
     /// features of the frames `i_t` (held fixed: the term moves `h` and the decoder `D`, not
-    /// the features), `eta` standard normal, and `s = decoder_noise` times the batch's standard
-    /// deviation of `h` per coordinate. It is the share of the features' variance that `h`
-    /// cannot give back, so a latent that folds two configurations with different features
-    /// onto one point pays for it wherever the fold lies, from every sample near it; the noise
-    /// keeps `D` from resolving a fold by growing steep. Needs `model.feature_decoder_width >
-    /// 0`.
+    /// the features), `D` reads `h` centred on its batch mean and over its batch RMS spread,
+    /// `eta` is standard normal, and `s = decoder_noise`. It is the share of the features'
+    /// variance that `h` cannot give back, so a latent that folds two configurations with
+    /// different features onto one point pays for it wherever the fold lies, from every sample
+    /// near it; the noise keeps `D` from resolving a fold by growing steep. Needs
+    /// `model.feature_decoder_width > 0`.
     #[serde(default)]
     pub decoder_weight: f64,
-    /// Noise of the feature-decoder term, as a share of `h`'s batch standard deviation (see
+    /// Noise of the feature-decoder term, as a share of `h`'s batch RMS spread (see
     /// [`LossConfig::decoder_weight`]); >= 0.
     #[serde(default = "default_decoder_noise")]
     pub decoder_noise: f64,
@@ -411,6 +411,19 @@ pub fn feature_reconstruction_loss(
         (error, variance)
     };
     error.sum().reshape([1]) / variance.sum().reshape([1]).add_scalar(1e-12)
+}
+
+/// What the feature decoder reads of `h [n, du]`: `h` centred on its batch mean and over its
+/// batch RMS spread (statistics held fixed). CPC leaves the latent's offset free, and on the
+/// reacher it drifts to |h| ~ 100-200, where raw inputs saturate the decoder's tanh layers and
+/// it goes flat (stop 26). One spread for all coordinates, so a rotation of the latent (the
+/// orientation search) is a rotation of the decoder's input.
+pub fn decoder_input(h: Tensor<2>) -> Tensor<2> {
+    let held = h.clone().detach();
+    let centre = held.clone().mean_dim(0); // [1, du]
+    let spread = (held - centre.clone()).powi_scalar(2).mean();
+    let spread = spread.sqrt().add_scalar(1e-6).reshape([1, 1]);
+    (h - centre) / spread
 }
 
 /// Squared distances `[n, n]` between frames `[n, c, rows, cols]` (rows and cols multiples of
@@ -1479,6 +1492,34 @@ mod tests {
                 .expect("gradient of the decoded features"),
         );
         assert_close(&g, &[0.0, 0.2, 0.0, -0.2], 1e-6, "gradient");
+    }
+
+    #[test]
+    fn the_decoder_reads_the_latent_whatever_its_offset_and_scale() {
+        // h = (0, 0), (2, 0), (0, 4), (2, 4): mean (1, 2), squared deviations 1 and 4 per
+        // coordinate, RMS spread sqrt(2.5).
+        let device = cpu_device();
+        let h = t2(&[0.0, 0.0, 2.0, 0.0, 0.0, 4.0, 2.0, 4.0], 4, 2, &device);
+        let s = 2.5f64.sqrt();
+        let want: Vec<f64> = [-1.0, -2.0, 1.0, -2.0, -1.0, 2.0, 1.0, 2.0]
+            .iter()
+            .map(|x| x / s)
+            .collect();
+        assert_close(
+            &to_vec(decoder_input(h.clone())),
+            &want,
+            1e-5,
+            "standardised",
+        );
+        // Drifted and stretched alike: the same input.
+        let drifted = decoder_input(h.clone() * 3.0 + 150.0);
+        assert_close(&to_vec(drifted), &want, 1e-4, "drifted");
+        // A quarter turn of the latent turns the input by a quarter turn.
+        let turn = t2(&[0.0, -1.0, 1.0, 0.0], 2, 2, &device);
+        let turned = decoder_input(h.clone().matmul(turn.clone()));
+        let want_turned = to_vec(decoder_input(h).matmul(turn));
+        let want_turned: Vec<f64> = want_turned.iter().map(|&x| x as f64).collect();
+        assert_close(&to_vec(turned), &want_turned, 1e-5, "turned");
     }
 
     #[test]

@@ -724,9 +724,9 @@ fn loss_inputs_and_batch(
             false => None,
         }
         .unwrap_or_else(|| inputs.h_now.clone());
-        let spread = h_now.clone().detach().var_bias(0).sqrt(); // [1, du]
-        let noise = normal_tensor(&mut rng, n, du, device) * spread * config.loss.decoder_noise;
-        (decoder.forward(h_now + noise), features)
+        let standardised = crate::losses::decoder_input(h_now);
+        let noise = normal_tensor(&mut rng, n, du, device) * config.loss.decoder_noise;
+        (decoder.forward(standardised + noise), features)
     });
     let inputs = LossInputs {
         decoded_features,
