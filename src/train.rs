@@ -717,13 +717,13 @@ fn loss_inputs_and_batch(
     // Drawn last, so switching the term on leaves every other draw of the step as it was.
     let decoded_features = decoder.zip(features).map(|(decoder, features)| {
         let features = features.narrow(0, n, n);
-        let h_now = match config.loss.decoder_head_only {
-            true => model
-                .encoder
-                .latent_from_features(features.clone().detach()),
-            false => None,
-        }
-        .unwrap_or_else(|| inputs.h_now.clone());
+        let held = config
+            .loss
+            .decoder_head_only
+            .then(|| features.clone().detach());
+        let h_now = held
+            .and_then(|features| model.encoder.latent_from_features(features))
+            .unwrap_or_else(|| inputs.h_now.clone());
         let standardised = crate::losses::decoder_input(h_now);
         let noise = normal_tensor(&mut rng, n, du, device) * config.loss.decoder_noise;
         (decoder.forward(standardised + noise), features)

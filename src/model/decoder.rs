@@ -58,7 +58,8 @@ impl FeatureDecoder {
     /// it decodes the reoriented latent to the same features. Weights are `[in, out]` and `h` a
     /// row: `(h p^T) W' = h W` with `W' = p W`.
     /// The new weight is rebuilt from its values so it stays a trainable graph leaf (the
-    /// orientation search reorients mid-training).
+    /// orientation search reorients mid-training). Its Adam moments, keyed by path, stay as
+    /// they were: a small lag for a regulariser that control never reads.
     pub fn reorient_input(mut self, p: Tensor<2>) -> Self {
         let weight = p.matmul(self.hidden1.weight.val().detach());
         let device = weight.device();
