@@ -685,10 +685,8 @@ fn loss_inputs_and_batch(
         .feature_decoder
         .as_ref()
         .filter(|_| config.loss.decoder_weight > 0.0);
-    let (h, features) = match decoder {
-        Some(_) => model.encoder.forward_with_features(frames),
-        None => (model.encoder.forward(frames), None),
-    }; // [3n or 4n, du]
+    // [3n or 4n, du]; the keypoint head computes its features either way.
+    let (h, features) = model.encoder.forward_with_features(frames);
     let ahead = (reach > 1).then(|| {
         let drive = TensorData::new(k_step_drive(data, &batch, reach), [n, du]);
         (

@@ -479,10 +479,13 @@ impl Encoder {
 
     /// `frames [n, 3, 64, 64]` (from [`super::frames_to_tensor`]) -> `h [n, du]`.
     pub fn forward(&self, frames: Tensor<4>) -> Tensor<2> {
-        // Rows are samples: h = raw Q^T.
-        self.forward_unoriented(frames)
-            .0
-            .matmul(self.latent_transform.val().transpose())
+        self.forward_with_features(frames).0
+    }
+
+    /// The head's output `raw [n, du]` turned by the orientation `Q`: rows are samples, so
+    /// `h = raw Q^T`.
+    fn orient(&self, raw: Tensor<2>) -> Tensor<2> {
+        raw.matmul(self.latent_transform.val().transpose())
     }
 
     /// Rescales the head's output layer so the latent of `frames` has zero mean and standard
@@ -600,16 +603,14 @@ impl Encoder {
     /// the feature decoder reconstructs these.
     pub fn forward_with_features(&self, frames: Tensor<4>) -> (Tensor<2>, Option<Tensor<2>>) {
         let (raw, features) = self.forward_unoriented(frames);
-        let h = raw.matmul(self.latent_transform.val().transpose());
-        (h, features)
+        (self.orient(raw), features)
     }
 
     /// `h` from keypoint features `[n, F]` (as [`Encoder::forward_with_features`] gives them):
     /// the head's layers after the keypoints, then the orientation. `None` for the MLP head.
     pub fn latent_from_features(&self, features: Tensor<2>) -> Option<Tensor<2>> {
         let head = self.keypoints.as_ref()?;
-        let raw = head.latent_from_features(features);
-        Some(raw.matmul(self.latent_transform.val().transpose()))
+        Some(self.orient(head.latent_from_features(features)))
     }
 
     /// The head's output before the orientation `Q`, and the keypoint features it read.
