@@ -165,6 +165,22 @@ pub struct LossConfig {
     /// distance apart where their latents are under 2% apart (stop 26).
     #[serde(default)]
     pub decoder_head_only: bool,
+    /// Local-stretch term: adds `stretch_weight * mean_s relu(rho a_s - b_s)^2 / rho^2` over
+    /// the batch's frame-to-frame steps `s` (`i_{t-1} -> i_t` and `i_t -> i_{t+1}`; 0: off, the
+    /// paper), where `b_s = ||h' - h||` over its batch mean and `a_s` is the step of the
+    /// keypoint head's features (held fixed), each feature over its batch std of the frames
+    /// `i_t` (floored at a third of the mean std), over its batch mean and capped at 4. It
+    /// charges steps along which the features move and the latent barely does: on the
+    /// reacher the turn term's failures end where a 0.1 rad move of the wrist changes `h` 47
+    /// times less than the fitted linear map says (a fold; docs/method.md, stop 25), and the
+    /// decoder's latents lost the wrist altogether (stop 26). A step is compared only with its
+    /// own features' step, so a chart may bend (the turn term's business) but not squash a
+    /// direction the features see. Needs the keypoint head.
+    #[serde(default)]
+    pub stretch_weight: f64,
+    /// `rho` of the local-stretch term (see [`LossConfig::stretch_weight`]); > 0.
+    #[serde(default = "default_stretch_ratio")]
+    pub stretch_ratio: f64,
     /// Diagnostic, not a method: adds `state_supervision_weight * mean ||h_t - s(q_t)||^2`,
     /// where `s` standardises the dataset's true configuration `q` per coordinate (0: off, the
     /// paper and every preset). The method itself never sees states. With it on, PD on the
@@ -183,6 +199,12 @@ fn default_action_response_horizon() -> usize {
 /// sound chart is charged little.
 fn default_separation_ratio() -> f64 {
     0.1
+}
+
+/// A step a quarter as long in the latent as the features' step says (both over their batch
+/// means) is charged; the turn term's flat bands squash the folded wrist's steps 3-47 times.
+fn default_stretch_ratio() -> f64 {
+    0.25
 }
 
 /// About a tenth of a 0.1 rad reacher motion's share of the latent's spread.
@@ -413,6 +435,49 @@ pub fn feature_reconstruction_loss(
     error.sum().reshape([1]) / variance.sum().reshape([1]).add_scalar(1e-12)
 }
 
+/// The local-stretch term (see [`LossConfig::stretch_weight`]) of the latents `h [3n, du]` and
+/// the keypoint features `features [3n, F]` of the frames `i_{t-1}, i_t, i_{t+1}` (in that
+/// order, `n` rows each). The features are held fixed and so is the latent steps' batch mean,
+/// so the gradient lengthens the charged steps rather than shortening the others. 0 for fewer
+/// than 2 samples or features that do not move.
+pub fn local_stretch_loss(h: Tensor<2>, features: Tensor<2>, ratio: f64) -> Tensor<1> {
+    let rows = h.dims()[0];
+    let width = features.dims()[1];
+    let device = h.device();
+    let n = rows / 3;
+    if n < 2 || width == 0 {
+        return Tensor::zeros([1], &device);
+    }
+    let steps = |x: Tensor<2>| {
+        // `x_t - x_{t-1}` and `x_{t+1} - x_t`, [2n, cols].
+        x.clone().narrow(0, n, 2 * n) - x.narrow(0, 0, 2 * n)
+    };
+    let features = features.detach();
+    // Each feature over its std across the frames `i_t`, floored so a keypoint that sits
+    // still does not make its jitter count.
+    let current = features.clone().narrow(0, n, n);
+    let std = (current.clone() - current.mean_dim(0))
+        .powi_scalar(2)
+        .mean_dim(0)
+        .sqrt(); // [1, F]
+    let floor = std.clone().mean().reshape([1, 1]) / 3.0 + 1e-12;
+    let scale = std.max_pair(floor.expand([1, width]));
+    let norm = |d: Tensor<2>| d.powi_scalar(2).sum_dim(1).add_scalar(1e-12).sqrt(); // [2n, 1]
+    let feature_step = norm(steps(features) / scale);
+    let feature_step = (feature_step.clone()
+        / feature_step.mean().reshape([1, 1]).add_scalar(1e-12))
+    .clamp_max(4.0);
+    let latent_step = norm(steps(h));
+    let latent_step = latent_step.clone()
+        / latent_step
+            .detach()
+            .mean()
+            .reshape([1, 1])
+            .add_scalar(1e-12);
+    let shortfall = relu(feature_step * ratio - latent_step);
+    shortfall.powi_scalar(2).mean().reshape([1]) / (ratio * ratio)
+}
+
 /// What the feature decoder reads of `h [n, du]`: `h` centred on its batch mean and over its
 /// batch RMS spread (statistics held fixed). CPC leaves the latent's offset free, and on the
 /// reacher it drifts to |h| ~ 100-200, where raw inputs saturate the decoder's tanh layers and
@@ -510,6 +575,8 @@ impl Default for LossConfig {
             decoder_noise: default_decoder_noise(),
             decoder_standardise: false,
             decoder_head_only: false,
+            stretch_weight: 0.0,
+            stretch_ratio: default_stretch_ratio(),
             state_supervision_weight: 0.0,
         }
     }
@@ -555,6 +622,7 @@ impl LossConfig {
             ("loss.separation_weight", self.separation_weight),
             ("loss.decoder_weight", self.decoder_weight),
             ("loss.decoder_noise", self.decoder_noise),
+            ("loss.stretch_weight", self.stretch_weight),
             (
                 "loss.state_supervision_weight",
                 self.state_supervision_weight,
@@ -564,6 +632,12 @@ impl LossConfig {
             return Err(Error::config(
                 "loss.separation_ratio",
                 format!("{} must be finite and > 0", self.separation_ratio),
+            ));
+        }
+        if !(self.stretch_ratio.is_finite() && self.stretch_ratio > 0.0) {
+            return Err(Error::config(
+                "loss.stretch_ratio",
+                format!("{} must be finite and > 0", self.stretch_ratio),
             ));
         }
         if let Some(c) = self.risk_latent_std
@@ -766,6 +840,9 @@ pub struct LossInputs {
     /// For the feature-decoder term (on): the decoder's output from the noisy `h_t` and the
     /// keypoint features of `i_t`, `[n, F]` each.
     pub decoded_features: Option<(Tensor<2>, Tensor<2>)>,
+    /// For the local-stretch term (on): the keypoint features of `i_{t-1}, i_t, i_{t+1}`,
+    /// `[3n, F]`.
+    pub stretch_features: Option<Tensor<2>>,
 }
 
 /// The loss terms of one step (unweighted) and the weighted total. A term that is switched
@@ -786,12 +863,14 @@ pub struct LossTerms {
     pub sep: Tensor<1>,
     /// The feature-decoder term: the share of the keypoint features `h` cannot give back.
     pub dec: Tensor<1>,
+    /// The local-stretch term: frame steps the features see and the latent squashes.
+    pub stretch: Tensor<1>,
     pub total: Tensor<1>,
 }
 
 /// Names of the logged terms, in [`LossValues::as_array`] order.
-pub const LOSS_NAMES: [&str; 10] = [
-    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn", "sep", "dec",
+pub const LOSS_NAMES: [&str; 11] = [
+    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn", "sep", "dec", "stretch",
 ];
 
 /// Loss values read back to the host, for logging.
@@ -807,13 +886,23 @@ pub struct LossValues {
     pub turn: f64,
     pub sep: f64,
     pub dec: f64,
+    pub stretch: f64,
 }
 
 impl LossValues {
-    pub fn as_array(&self) -> [f64; 10] {
+    pub fn as_array(&self) -> [f64; 11] {
         [
-            self.total, self.cpc, self.cons, self.curv, self.lyap, self.var, self.flat, self.turn,
-            self.sep, self.dec,
+            self.total,
+            self.cpc,
+            self.cons,
+            self.curv,
+            self.lyap,
+            self.var,
+            self.flat,
+            self.turn,
+            self.sep,
+            self.dec,
+            self.stretch,
         ]
     }
     pub fn is_finite(&self) -> bool {
@@ -835,6 +924,7 @@ impl LossTerms {
             &self.turn,
             &self.sep,
             &self.dec,
+            &self.stretch,
         ]);
         LossValues {
             total: v[0],
@@ -847,6 +937,7 @@ impl LossTerms {
             turn: v[7],
             sep: v[8],
             dec: v[9],
+            stretch: v[10],
         }
     }
 }
@@ -870,6 +961,7 @@ pub fn procl_loss(
         ahead,
         frame_distances,
         decoded_features,
+        stretch_features,
     } = inputs;
     let h_now_for_variance = h_now.clone();
     let device = h_now.device();
@@ -882,6 +974,14 @@ pub fn procl_loss(
         Some((decoded, features)) => {
             feature_reconstruction_loss(decoded, features, config.decoder_standardise)
         }
+        None => zero(),
+    };
+    let stretch = match stretch_features.filter(|_| config.stretch_weight > 0.0) {
+        Some(features) => local_stretch_loss(
+            Tensor::cat(vec![h_prev.clone(), h_now.clone(), h_next.clone()], 0),
+            features,
+            config.stretch_ratio,
+        ),
         None => zero(),
     };
     let (flat, turn) = if config.reads_action_response() {
@@ -1005,7 +1105,8 @@ pub fn procl_loss(
         + flat.clone() * config.action_response_weight
         + turn.clone() * config.action_response_turn_weight
         + sep.clone() * config.separation_weight
-        + dec.clone() * config.decoder_weight;
+        + dec.clone() * config.decoder_weight
+        + stretch.clone() * config.stretch_weight;
     if config.decorrelation_weight > 0.0 {
         total = total + correlation_penalty(h_now_for_variance) * config.decorrelation_weight;
     }
@@ -1019,6 +1120,7 @@ pub fn procl_loss(
         turn,
         sep,
         dec,
+        stretch,
         total,
     }
 }
@@ -1433,6 +1535,39 @@ mod tests {
         let g = to_vec(collided.grad(&loss.backward()).expect("gradient of h"));
         // Rows 1 and 2 are 0.1 apart in x: descent (-g) moves row 1 left and row 2 right.
         assert!(-g[2] < 0.0 && -g[4] > 0.0, "{g:?}");
+    }
+
+    #[test]
+    fn local_stretch_charges_steps_the_latent_squashes_against_the_features() {
+        // Two samples; rows are i_{t-1} (2), i_t (2), i_{t+1} (2). Features 0, 0 | 1, 3 | 2, 4:
+        // std over i_t is 1 (floor 1/3), steps 1, 3, 1, 1 over their mean 1.5 are a = 2/3, 2,
+        // 2/3, 2/3. Latents 0, 0 | 1, 0.5 | 2, 1.5: steps 1, 0.5, 1, 1 over their mean 0.875
+        // are b = 8/7, 4/7, 8/7, 8/7. At rho = 0.5 only the second step falls short, by
+        // 1 - 4/7 = 3/7: (9/49) / 4 steps / 0.25 = 9/49.
+        let device = cpu_device();
+        let features = t2(&[0.0, 0.0, 1.0, 3.0, 2.0, 4.0], 6, 1, &device);
+        let h = t2(&[0.0, 0.0, 1.0, 0.5, 2.0, 1.5], 6, 1, &device);
+        let stretch = |h: Tensor<2>, features: Tensor<2>, ratio| {
+            scalar(local_stretch_loss(h, features, ratio))
+        };
+        let got = stretch(h.clone(), features.clone(), 0.5);
+        assert!((got - 9.0 / 49.0).abs() < 1e-6, "{got}");
+        // Neither the latent's scale nor the features' matters; at rho = 0.25 no step is short.
+        let scaled = stretch(h.clone() * 7.0, features.clone() * 5.0, 0.5);
+        assert!((scaled - got).abs() < 1e-6, "{scaled}");
+        assert_eq!(stretch(h.clone(), features.clone(), 0.25), 0.0);
+        // Features that do not move ask for nothing.
+        assert_eq!(stretch(h, features.clone() * 0.0, 0.5), 0.0);
+        // The gradient lengthens the squashed step and leaves the others.
+        let device = device.autodiff();
+        let h = t2(&[0.0, 0.0, 1.0, 0.5, 2.0, 1.5], 6, 1, &device).require_grad();
+        let features = Tensor::<2>::from_data(features.into_data(), &device);
+        let loss = local_stretch_loss(h.clone(), features, 0.5);
+        let g = to_vec(h.grad(&loss.backward()).expect("gradient of h"));
+        assert!(-g[3] > 0.0 && -g[1] < 0.0, "{g:?}");
+        for i in [0, 2, 4, 5] {
+            assert_eq!(g[i], 0.0, "{g:?}");
+        }
     }
 
     #[test]

@@ -353,6 +353,15 @@ impl TrainConfig {
                 ),
             ));
         }
+        if self.loss.stretch_weight > 0.0 && self.model.encoder.keypoint_feature_count().is_none() {
+            return Err(Error::config(
+                "loss.stretch_weight",
+                format!(
+                    "{} needs the keypoint head's features: set model.encoder.head.kind = \"soft-argmax\"",
+                    self.loss.stretch_weight
+                ),
+            ));
+        }
         if self.orientation_search_every > 0
             && !self
                 .checkpoint_every
@@ -711,6 +720,10 @@ fn loss_inputs_and_batch(
         ahead,
         frame_distances,
         decoded_features: None,
+        stretch_features: features
+            .as_ref()
+            .filter(|_| config.loss.stretch_weight > 0.0)
+            .map(|features| features.clone().narrow(0, 0, 3 * n).detach()),
     };
     // Drawn last, so switching the term on leaves every other draw of the step as it was.
     let decoded_features = decoder.zip(features).map(|(decoder, features)| {
@@ -1385,6 +1398,9 @@ mod tests {
         config.loss.separation_ratio = 10.0;
         config.loss.decoder_weight = 2.0;
         config.model.feature_decoder_width = 8;
+        config.loss.stretch_weight = 4.0;
+        // A ratio far above any fresh latent's, so most steps are charged.
+        config.loss.stretch_ratio = 10.0;
         // A floor above any fresh latent's spread, so the hinge is logged above 0.
         config.loss.variance_floor = Some(100.0);
         let device = crate::model::cpu_device();
@@ -1405,14 +1421,15 @@ mod tests {
             + loss.action_response_weight * term("flat")
             + loss.action_response_turn_weight * term("turn")
             + loss.separation_weight * term("sep")
-            + loss.decoder_weight * term("dec");
+            + loss.decoder_weight * term("dec")
+            + loss.stretch_weight * term("stretch");
         assert!(
             (recombined - values.total()).abs() <= 1e-4 * values.total().abs().max(1.0),
             "{values}: recombined {recombined}"
         );
         assert!(term("var") > 1.0 && term("flat") > 0.0, "{values}");
         assert!((0.0..=1.0).contains(&term("turn")), "{values}");
-        assert!(term("sep") > 0.0, "{values}");
+        assert!(term("sep") > 0.0 && term("stretch") > 0.0, "{values}");
         // The decoder starts constant: it leaves all of the features' variance.
         assert!((term("dec") - 1.0).abs() < 1e-5, "{values}");
         // Decoding an h recomputed from the held features changes where the gradient goes,
@@ -1448,12 +1465,14 @@ mod tests {
         config.loss.variance_floor = None;
         config.loss.separation_weight = 0.0;
         config.loss.decoder_weight = 0.0;
+        config.loss.stretch_weight = 0.0;
         let (inputs, _) = loss_inputs_and_batch(&model, &data, &config, 0, &device);
         assert!(inputs.frame_distances.is_none() && inputs.decoded_features.is_none());
+        assert!(inputs.stretch_features.is_none());
         let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
             .into();
-        for name in ["var", "flat", "turn", "sep", "dec"] {
+        for name in ["var", "flat", "turn", "sep", "dec", "stretch"] {
             assert_eq!(off.get(name), Some(0.0), "{off}");
         }
         assert_eq!(off.names, &LOSS_NAMES);
@@ -1472,13 +1491,13 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text,
-            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,seconds\n\
-             1,5,1,2,0,0.5,,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,,3\n"
+            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,seconds\n\
+             1,5,1,2,0,0.5,,,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,,,3\n"
         );
         // Under the current header rows are kept as they are.
         truncate_metrics(&path, 1, &header).expect("truncate again");
         let text = std::fs::read_to_string(&path).expect("read");
-        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,,1.5\n"));
+        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,,,1.5\n"));
     }
 
     #[test]

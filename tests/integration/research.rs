@@ -76,6 +76,7 @@ fn risk_of_map(data: &Dataset, map: [[f32; 2]; 2], loss: &LossConfig, batches: u
             ahead: None,
             frame_distances: None,
             decoded_features: None,
+            stretch_features: None,
         };
         let terms = procl_loss(loss, &dynamics, inputs, data.meta.control_dt_s);
         total += to_vec(terms.lyap)[0] as f64;
@@ -370,6 +371,14 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         cell(
             "stop26_preset_action_response_turn_weight=3_k=10_velocity_decoder=1_standardised_head-only"
         )
+    );
+    // Stop 27: the turn term at weight 3 and the local-stretch term.
+    let mut stretched = separated.clone();
+    stretched.loss.separation_weight = 0.0;
+    (stretched.loss.stretch_weight, stretched.loss.stretch_ratio) = (10.0, 0.25);
+    assert_eq!(
+        stretched,
+        cell("stop27_preset_action_response_turn_weight=3_k=10_velocity_stretch=10_rho=0.25")
     );
     // Each stop-14 and stop-15 cell is the stop-13 design (the preset until stop 15) at 1200
     // steps plus its changes.

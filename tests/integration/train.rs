@@ -55,7 +55,7 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<f64>> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
-        Some("step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,seconds")
+        Some("step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,seconds")
     );
     lines
         .map(|line| {
@@ -353,6 +353,18 @@ fn bad_configs_are_rejected_by_field_name() {
     );
     let err = config_err("[loss]\ndecoder_noise = -0.1");
     assert!(err.contains("loss.decoder_noise"), "{err}");
+    let err = config_err("[loss]\nstretch_weight = -1.0");
+    assert!(err.contains("loss.stretch_weight"), "{err}");
+    for bad in ["0.0", "-0.5", "nan"] {
+        let err = config_err(&format!("[loss]\nstretch_ratio = {bad}"));
+        assert!(err.contains("loss.stretch_ratio"), "{bad}: {err}");
+    }
+    // The paper's MLP head has no keypoint features to compare the latent's steps with.
+    let err = config_err("preset = \"paper\"\n[loss]\nstretch_weight = 1.0");
+    assert!(
+        err.contains("loss.stretch_weight") && err.contains("soft-argmax"),
+        "{err}"
+    );
 
     // A non-finite learning rate given to `train` directly is refused before anything is
     // written.
