@@ -60,7 +60,7 @@ impl ExperimentConfig {
         let budget = |env, train_steps| EnvBudget {
             env,
             transitions: CollectConfig::new(env, 0).transitions,
-            episode_len: 100,
+            episode_len: CollectConfig::new(env, 0).episode_len,
             train_steps,
         };
         Self {

@@ -449,7 +449,7 @@ pub fn local_stretch_loss(h: Tensor<2>, features: Tensor<2>, ratio: f64) -> Tens
         return Tensor::zeros([1], &device);
     }
     let steps = |x: Tensor<2>| {
-        // `x_t - x_{t-1}` and `x_{t+1} - x_t`, [2n, cols].
+        // `x_t - x_{t-1}` and `x_{t+1} - x_t`, `[2n, columns of x]`.
         x.clone().narrow(0, n, 2 * n) - x.narrow(0, 0, 2 * n)
     };
     let features = features.detach();
