@@ -60,7 +60,7 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<f64>> {
     lines
         .map(|line| {
             let mut row: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
-            assert_eq!(row.len(), 12, "bad row {line}");
+            assert_eq!(row.len(), 13, "bad row {line}");
             row.pop();
             row
         })
