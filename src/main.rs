@@ -202,6 +202,10 @@ enum Command {
         /// Dataset transitions (default: spec.md 2's size for the env, 50,000 for fetch).
         #[arg(long)]
         transitions: Option<usize>,
+        /// Steps per dataset episode (default 100, on which every shipped cell was measured;
+        /// `collect`'s reacher default is 10).
+        #[arg(long, default_value_t = 100)]
+        episode_len: usize,
         #[arg(long)]
         out: PathBuf,
     },
@@ -566,6 +570,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             episodes,
             horizon,
             transitions,
+            episode_len,
             out,
         } => {
             let env: EnvKind = env.parse()?;
@@ -579,17 +584,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             if seeds == 0 || episodes == 0 {
                 anyhow::bail!("--seeds and --episodes must be at least 1");
             }
-            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-            let data_path = out.join(format!("{env}.npz"));
             let defaults = CollectConfig::new(env, 0);
             let transitions = transitions.unwrap_or(defaults.transitions);
             // Every cell of the shipped grids was measured on episodes of 100 steps (the
             // reacher's turn-term cells read 10 steps ahead, which 10-step episodes cannot hold).
             let collect_config = CollectConfig {
                 transitions,
-                episode_len: 100.min(transitions),
+                episode_len: episode_len.min(transitions),
                 ..defaults
             };
+            // Sizes are checked before the output folder is made.
+            collect_config.episodes()?;
+            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+            let data_path = out.join(format!("{env}.npz"));
             let (data, _) = procl::pipeline::collect_or_reuse(&collect_config, &data_path, |_| {})?;
             let protocol = procl::pipeline::reach_protocol(env, episodes, horizon);
             let results = procl::ablate::run_grid(

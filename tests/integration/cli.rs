@@ -140,6 +140,41 @@ fn collect_render_info_and_bad_input() {
         "pm.npz",
     );
 
+    // The reacher's default episodes hold 10 steps; a length below 2 is refused by `collect`
+    // and `ablate` alike, before anything is written.
+    let reacher = dir.path().join("reacher.npz");
+    let out = procl(&[
+        "collect",
+        "--env",
+        "reacher",
+        "--transitions",
+        "40",
+        "--out",
+        path_str(&reacher),
+    ]);
+    assert!(out.status.success());
+    let data = procl::data::Dataset::load(&reacher).unwrap();
+    assert_eq!((data.episodes(), data.steps()), (4, 10));
+    let ablate_out = dir.path().join("ablate");
+    for args in [
+        vec!["collect", "--env", "reacher", "--out", "y.npz"],
+        vec![
+            "ablate",
+            "--env",
+            "reacher",
+            "--grid",
+            "ablation/reacher.toml",
+        ],
+    ] {
+        let mut args = args;
+        args.extend(["--episode-len", "1"]);
+        if args[0] == "ablate" {
+            args.extend(["--out", path_str(&ablate_out)]);
+        }
+        fails_with(&args, "episode_len");
+    }
+    assert!(!ablate_out.exists());
+
     let png = dir.path().join("strip.png");
     let out = procl(&["render", "--env", "reacher", "--out", path_str(&png)]);
     assert!(out.status.success());
