@@ -57,11 +57,14 @@ impl ExperimentConfig {
     /// The full experiment: spec.md 2's dataset sizes, every method trained on the same budget
     /// per environment, 50 evaluation episodes, eps in {0.001, 0.01, 0.1}.
     pub fn paper(out: impl Into<PathBuf>) -> Self {
-        let budget = |env, train_steps| EnvBudget {
-            env,
-            transitions: CollectConfig::new(env, 0).transitions,
-            episode_len: CollectConfig::new(env, 0).episode_len,
-            train_steps,
+        let budget = |env, train_steps| {
+            let defaults = CollectConfig::new(env, 0);
+            EnvBudget {
+                env,
+                transitions: defaults.transitions,
+                episode_len: defaults.episode_len,
+                train_steps,
+            }
         };
         Self {
             out: out.into(),

@@ -156,23 +156,32 @@ fn collect_render_info_and_bad_input() {
     let data = procl::data::Dataset::load(&reacher).unwrap();
     assert_eq!((data.episodes(), data.steps()), (4, 10));
     let ablate_out = dir.path().join("ablate");
-    for args in [
-        vec!["collect", "--env", "reacher", "--out", "y.npz"],
-        vec![
+    fails_with(
+        &[
+            "collect",
+            "--env",
+            "reacher",
+            "--episode-len",
+            "1",
+            "--out",
+            "y.npz",
+        ],
+        "episode_len",
+    );
+    fails_with(
+        &[
             "ablate",
             "--env",
             "reacher",
             "--grid",
             "ablation/reacher.toml",
+            "--episode-len",
+            "1",
+            "--out",
+            path_str(&ablate_out),
         ],
-    ] {
-        let mut args = args;
-        args.extend(["--episode-len", "1"]);
-        if args[0] == "ablate" {
-            args.extend(["--out", path_str(&ablate_out)]);
-        }
-        fails_with(&args, "episode_len");
-    }
+        "episode_len",
+    );
     assert!(!ablate_out.exists());
 
     let png = dir.path().join("strip.png");
