@@ -346,10 +346,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             }
             let d = procl::eval::write_diagnostics(&run)?;
             println!(
-                "latent: linear R^2 of q from h = {:.3}, 5-NN R^2 = {:.3}, folded pairs {:.3}%, det(q -> h map) = {} (latent_map.png, diagnostics.json)",
+                "latent: linear R^2 of q from h = {:.3}, 5-NN R^2 = {:.3}, folded pairs {:.3}%, pairs PD pushes away {}, det(q -> h map) = {} (latent_map.png, diagnostics.json)",
                 d.linear_r2,
                 d.knn_r2,
                 100.0 * d.folded_share,
+                d.pushes_away_share
+                    .map_or("-".into(), |x| format!("{:.2}%", 100.0 * x)),
                 d.config_to_latent_det
                     .map_or("-".into(), |x| format!("{x:.3}"))
             );

@@ -31,6 +31,10 @@ pub struct LatentDiagnostics {
     /// folds away when they are small; PD stops on them (docs/method.md, stop 25).
     #[serde(default)]
     pub folded_share: f64,
+    /// Share of the grid's pairs of configurations whose latent PD torque at rest pushes away
+    /// from the goal (see [`pushes_away_share`]); `None` when `h` and `q` differ in dimension.
+    #[serde(default)]
+    pub pushes_away_share: Option<f64>,
     /// Grid points encoded.
     pub points: usize,
 }
@@ -93,6 +97,36 @@ pub fn folded_share(latents: &[Vec<f64>], configs: &[Vec<f64>]) -> f64 {
     } else {
         folded as f64 / count as f64
     }
+}
+
+/// The share of unordered pairs `(q_i, q_j)` of `configs` for which PD on the latent, started
+/// at rest at either one with the other as goal, applies an action with no positive component
+/// towards the goal: `(q_j - q_i) . (h_j - h_i) <= 0`. The action at rest is `Kp (h* - h)` with
+/// one scalar gain, and the env's actuators apply it with one gear for every joint, so this is
+/// the sign of the work the first torque does along the straight path to the goal: a latent
+/// with `h` the gradient of a strictly convex function of `q` (for instance `q` itself, up to
+/// a positive scale) has none, a mirrored or crossed-over axis has many. `None` when the
+/// dimensions differ or there are fewer than 2 points.
+pub fn pushes_away_share(latents: &[Vec<f64>], configs: &[Vec<f64>]) -> Option<f64> {
+    let n = configs.len().min(latents.len());
+    let same_dims = configs.iter().zip(latents).all(|(q, h)| q.len() == h.len());
+    if n < 2 || !same_dims {
+        return None;
+    }
+    let work = |i: usize, j: usize| -> f64 {
+        configs[j]
+            .iter()
+            .zip(&configs[i])
+            .zip(latents[j].iter().zip(&latents[i]))
+            .map(|((qj, qi), (hj, hi))| (qj - qi) * (hj - hi))
+            .sum()
+    };
+    let pairs = n * (n - 1) / 2;
+    let away = (0..n)
+        .flat_map(|i| (i + 1..n).map(move |j| (i, j)))
+        .filter(|&(i, j)| work(i, j) <= 0.0)
+        .count();
+    Some(away as f64 / pairs as f64)
 }
 
 /// Leave-one-out `k`-nearest-neighbour regression of `targets` from `inputs` (Euclidean in
@@ -308,6 +342,7 @@ pub fn latent_diagnostics(
             r2.iter().sum::<f64>() / r2.len().max(1) as f64
         },
         folded_share: folded_share(&latents, &configs),
+        pushes_away_share: pushes_away_share(&latents, &configs),
         points: configs.len(),
     })
 }
@@ -408,6 +443,43 @@ mod tests {
         let got = folded_share(&folded, &configs);
         assert!((got - 180.0 / 76230.0).abs() < 1e-9, "{got}");
         assert_eq!(folded_share(&[], &[]), 0.0);
+    }
+
+    #[test]
+    fn pushes_away_share_counts_pairs_whose_first_torque_opposes_the_goal() {
+        let configs = grid();
+        let map = |m: [[f64; 2]; 2]| -> Vec<Vec<f64>> {
+            configs
+                .iter()
+                .map(|q| (0..2).map(|r| m[r][0] * q[0] + m[r][1] * q[1]).collect())
+                .collect()
+        };
+        // The gradient of a convex quadratic (a symmetric positive-definite map), and a
+        // rotation by 30 degrees (its symmetric part cos 30 I is positive definite), push every
+        // pair towards the goal.
+        assert_eq!(
+            pushes_away_share(&map([[2.0, 1.0], [1.0, 1.0]]), &configs),
+            Some(0.0)
+        );
+        let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+        assert_eq!(
+            pushes_away_share(&map([[c, -s], [s, c]]), &configs),
+            Some(0.0)
+        );
+        // A map crossed over by 120 degrees pushes every pair away.
+        let (c, s) = (120f64.to_radians().cos(), 120f64.to_radians().sin());
+        assert_eq!(
+            pushes_away_share(&map([[c, -s], [s, c]]), &configs),
+            Some(1.0)
+        );
+        // Three points, q0 mirrored: the pair along q0 has work -1 and the diagonal pair
+        // (-1, 1) . (1, 1) = 0; only the pair along q1 (work +1) is pushed towards: 2 of 3.
+        let q = [vec![0.0, 0.0], vec![1.0, 0.0], vec![0.0, 1.0]];
+        let h = [vec![0.0, 0.0], vec![-1.0, 0.0], vec![0.0, 1.0]];
+        assert_eq!(pushes_away_share(&h, &q), Some(2.0 / 3.0));
+        // Undefined across dimensions, or without a pair.
+        assert_eq!(pushes_away_share(&[vec![0.0], vec![1.0]], &q[..2]), None);
+        assert_eq!(pushes_away_share(&h[..1], &q[..1]), None);
     }
 
     #[test]
