@@ -117,7 +117,22 @@ pub struct LossConfig {
     /// only the part that depends on where in the latent the sample lies.
     #[serde(default)]
     pub action_response_turn_weight: f64,
-    /// Groups of the turn term (see [`LossConfig::action_response_turn_weight`]); at least 2.
+    /// Sign term: adds `action_response_sign_weight * mean_r sum_i relu(-D_r[i, i]) / s`, where
+    /// `D_r` is the drive block of the least-squares response map (as the flat-chart term reads
+    /// it: same horizon, same regressors) fitted in each of the `action_response_regions`
+    /// groups of the turn term, and `s` the root mean square entry of the whole batch's drive
+    /// block (held fixed). PD on `h` with one gain per coordinate needs the action on `h_i` to
+    /// move `h_i` forwards everywhere: near a goal the loop is `h'' = -B (Kp dh + Kd h')` with
+    /// `B = J M(q)^-1`, which is unstable once a diagonal entry of `B` turns negative. The
+    /// orientation makes the batch's mean response diagonal positive; the reacher's latents
+    /// hook at the shoulder's ends: past 110 degrees the shoulder's column of the local `dh/dq`
+    /// is turned by 140-170 degrees against the middle's (`dh_0/dq_0` negative), below -110 it
+    /// flattens, and that is where the failures are (docs/method.md, stop 29). A group must be
+    /// narrow enough to see a hook: a third of the batch averages it away. 0: off (the paper).
+    #[serde(default)]
+    pub action_response_sign_weight: f64,
+    /// Groups of the turn and sign terms (see [`LossConfig::action_response_turn_weight`]); at
+    /// least 2.
     #[serde(default = "default_action_response_regions")]
     pub action_response_regions: usize,
     /// Separation term: adds `separation_weight * mean_{i != j} relu(rho D_ij - d_ij)^2 /
@@ -371,6 +386,78 @@ pub fn action_response_turn(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: u
     (residual_one - residual_regions) / total.add_scalar(1e-12)
 }
 
+/// The least-squares coefficients `B [p, d]` of `a ~ x B + c` with the gradient through `x^T a`
+/// only: `(x^T x)^-1` is solved on the host and held fixed. `None` when `x` is degenerate.
+fn least_squares_coefficients(a: Tensor<2>, x: Tensor<2>) -> Option<Tensor<2>> {
+    let [_, p] = x.dims();
+    let device = x.device();
+    let centre = |t: Tensor<2>| t.clone() - t.mean_dim(0);
+    let (a, x) = (centre(a), centre(x));
+    let gram = crate::model::to_vec(x.clone().transpose().matmul(x.clone()).detach());
+    let gram = nalgebra::DMatrix::from_row_iterator(p, p, gram.into_iter().map(f64::from));
+    let inverse = gram
+        .try_inverse()
+        .filter(|m| m.iter().all(|v| v.is_finite()))?;
+    let inverse: Vec<f32> = inverse.transpose().iter().map(|&v| v as f32).collect();
+    let inverse = Tensor::<2>::from_data(TensorData::new(inverse, [p, p]), &device);
+    Some(inverse.matmul(x.transpose().matmul(a)))
+}
+
+/// The sign term (see [`LossConfig::action_response_sign_weight`]) of the response `a [n, d]`
+/// on the regressors `x [n, p]`, whose last `d` columns are the drive: the mean over `regions`
+/// groups along the first principal axis of `h [n, d]` of `sum_i relu(-D_r[i, i]) / s`. 0 when
+/// `x` has fewer than `d` columns, a group has too few rows to fit (`p + 2`), or a fit is
+/// degenerate.
+pub fn action_response_sign(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: usize) -> Tensor<1> {
+    let device = x.device();
+    let zero = || Tensor::zeros([1], &device);
+    let [n, p] = x.dims();
+    let [_, d] = a.dims();
+    if p < d || regions == 0 || n / regions < p + 2 {
+        return zero();
+    }
+    // The drive block's diagonal: rows p - d + i, column i of B.
+    let diagonal_mask = {
+        let mut mask = vec![0f32; p * d];
+        for i in 0..d {
+            mask[(p - d + i) * d + i] = 1.0;
+        }
+        Tensor::<2>::from_data(TensorData::new(mask, [p, d]), &device)
+    };
+    let drive_rows = Tensor::<1, burn::tensor::Int>::arange((p - d) as i64..p as i64, &device);
+    let Some(whole) = least_squares_coefficients(a.clone(), x.clone()) else {
+        return zero();
+    };
+    let scale = crate::model::to_vec(whole.select(0, drive_rows).detach().powi_scalar(2).mean())[0]
+        .sqrt() as f64;
+    if !(scale.is_finite() && scale > 0.0) {
+        return zero();
+    }
+    let order = principal_axis_order(h);
+    let mut total = zero();
+    for r in 0..regions {
+        let rows: Vec<i64> = order[r * n / regions..(r + 1) * n / regions]
+            .iter()
+            .map(|&i| i as i64)
+            .collect();
+        let index = Tensor::<1, burn::tensor::Int>::from_data(
+            TensorData::new(rows.clone(), [rows.len()]),
+            &device,
+        );
+        let Some(local) = least_squares_coefficients(
+            a.clone().select(0, index.clone()),
+            x.clone().select(0, index),
+        ) else {
+            return zero();
+        };
+        total = total
+            + relu((local * diagonal_mask.clone()).neg())
+                .sum()
+                .reshape([1]);
+    }
+    total / (regions as f64 * scale)
+}
+
 /// The separation term (see [`LossConfig::separation_weight`]) of the latents `h [n, du]`
 /// against their frames' squared distances `frame_distances [n, n]` (any scale; the diagonal
 /// is ignored). Both distances are taken over their mean across the batch's pairs; the
@@ -568,6 +655,7 @@ impl Default for LossConfig {
             action_response_horizon: default_action_response_horizon(),
             action_response_velocity: false,
             action_response_turn_weight: 0.0,
+            action_response_sign_weight: 0.0,
             action_response_regions: default_action_response_regions(),
             separation_weight: 0.0,
             separation_ratio: default_separation_ratio(),
@@ -593,9 +681,11 @@ impl LossConfig {
         }
     }
 
-    /// Whether the flat-chart or the turn term is on (both read the latent's response).
+    /// Whether the flat-chart, turn or sign term is on (all read the latent's response).
     pub fn reads_action_response(&self) -> bool {
-        self.action_response_weight > 0.0 || self.action_response_turn_weight > 0.0
+        self.action_response_weight > 0.0
+            || self.action_response_turn_weight > 0.0
+            || self.action_response_sign_weight > 0.0
     }
 
     /// Rejects values that make no sense (negative weights or noise, zero gains).
@@ -618,6 +708,10 @@ impl LossConfig {
             (
                 "loss.action_response_turn_weight",
                 self.action_response_turn_weight,
+            ),
+            (
+                "loss.action_response_sign_weight",
+                self.action_response_sign_weight,
             ),
             ("loss.separation_weight", self.separation_weight),
             ("loss.decoder_weight", self.decoder_weight),
@@ -859,6 +953,8 @@ pub struct LossTerms {
     pub flat: Tensor<1>,
     /// The turn term: the share regional maps explain and one map does not.
     pub turn: Tensor<1>,
+    /// The sign term: negative diagonal entries of the regional drive responses.
+    pub sign: Tensor<1>,
     /// The separation term: pairs of different-looking frames with too close latents.
     pub sep: Tensor<1>,
     /// The feature-decoder term: the share of the keypoint features `h` cannot give back.
@@ -869,8 +965,8 @@ pub struct LossTerms {
 }
 
 /// Names of the logged terms, in [`LossValues::as_array`] order.
-pub const LOSS_NAMES: [&str; 11] = [
-    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn", "sep", "dec", "stretch",
+pub const LOSS_NAMES: [&str; 12] = [
+    "total", "cpc", "cons", "curv", "lyap", "var", "flat", "turn", "sep", "dec", "stretch", "sign",
 ];
 
 /// Loss values read back to the host, for logging.
@@ -887,10 +983,13 @@ pub struct LossValues {
     pub sep: f64,
     pub dec: f64,
     pub stretch: f64,
+    /// Absent from runs logged before the sign term.
+    #[serde(default)]
+    pub sign: f64,
 }
 
 impl LossValues {
-    pub fn as_array(&self) -> [f64; 11] {
+    pub fn as_array(&self) -> [f64; 12] {
         [
             self.total,
             self.cpc,
@@ -903,6 +1002,7 @@ impl LossValues {
             self.sep,
             self.dec,
             self.stretch,
+            self.sign,
         ]
     }
     pub fn is_finite(&self) -> bool {
@@ -925,6 +1025,7 @@ impl LossTerms {
             &self.sep,
             &self.dec,
             &self.stretch,
+            &self.sign,
         ]);
         LossValues {
             total: v[0],
@@ -938,6 +1039,7 @@ impl LossTerms {
             sep: v[8],
             dec: v[9],
             stretch: v[10],
+            sign: v[11],
         }
     }
 }
@@ -984,7 +1086,7 @@ pub fn procl_loss(
         ),
         None => zero(),
     };
-    let (flat, turn) = if config.reads_action_response() {
+    let (flat, turn, sign) = if config.reads_action_response() {
         // Without `ahead` the terms read one step, whatever the configured horizon.
         let (k, (h_ahead, drive)) = match ahead {
             Some(ahead) => (config.action_response_horizon as f64, ahead),
@@ -1004,6 +1106,16 @@ pub fn procl_loss(
         };
         let turn = if config.action_response_turn_weight > 0.0 {
             action_response_turn(
+                response.clone(),
+                regressors.clone(),
+                h_now.clone(),
+                config.action_response_regions,
+            )
+        } else {
+            zero()
+        };
+        let sign = if config.action_response_sign_weight > 0.0 {
+            action_response_sign(
                 response,
                 regressors,
                 h_now.clone(),
@@ -1012,9 +1124,9 @@ pub fn procl_loss(
         } else {
             zero()
         };
-        (flat, turn)
+        (flat, turn, sign)
     } else {
-        (zero(), zero())
+        (zero(), zero(), zero())
     };
     let v_now = (h_now.clone() - h_prev) / dt;
     let h_next_noisy = h_next.clone() + latent_noise * config.latent_noise_std;
@@ -1104,6 +1216,7 @@ pub fn procl_loss(
         + var.clone() * config.variance_weight
         + flat.clone() * config.action_response_weight
         + turn.clone() * config.action_response_turn_weight
+        + sign.clone() * config.action_response_sign_weight
         + sep.clone() * config.separation_weight
         + dec.clone() * config.decoder_weight
         + stretch.clone() * config.stretch_weight;
@@ -1118,6 +1231,7 @@ pub fn procl_loss(
         var,
         flat,
         turn,
+        sign,
         sep,
         dec,
         stretch,
@@ -1677,52 +1791,103 @@ mod tests {
         assert_close(&d, &want, 1e-6, "block distances");
     }
 
+    /// Three groups of 4 samples along a line in `h` (turned by `(c, s)`), each with the
+    /// actions (1,0), (0,1), (-1,0), (0,-1) (so `x^T x = 2 I` per group), responding by
+    /// `a = u B_g`, the response turned with the latent; rows shuffled, so the groups come
+    /// from `h`'s principal axis and not from the row order. Returns `(h, u, a)`.
+    fn regional_responses(
+        maps: [[[f32; 2]; 2]; 3],
+        (c, s): (f32, f32),
+        device: &Device,
+    ) -> (Tensor<2>, Tensor<2>, Tensor<2>) {
+        let actions = [[1.0f32, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
+        let shuffle = [5usize, 0, 11, 3, 8, 1, 10, 6, 2, 9, 4, 7];
+        let (mut h, mut u, mut a) = (vec![], vec![], vec![]);
+        for &row in &shuffle {
+            let (group, k) = (row / 4, row % 4);
+            let position = row as f32;
+            h.extend([position * c, position * s]);
+            let [u0, u1] = actions[k];
+            u.extend([u0, u1]);
+            let b = maps[group];
+            let (a0, a1) = (u0 * b[0][0] + u1 * b[1][0], u0 * b[0][1] + u1 * b[1][1]);
+            a.extend([a0 * c - a1 * s, a0 * s + a1 * c]);
+        }
+        (
+            t2(&h, 12, 2, device),
+            t2(&u, 12, 2, device),
+            t2(&a, 12, 2, device),
+        )
+    }
+
+    const IDENTITY: [[f32; 2]; 2] = [[1.0, 0.0], [0.0, 1.0]];
+    const MINUS: [[f32; 2]; 2] = [[-1.0, 0.0], [0.0, -1.0]];
+
     #[test]
     fn turn_term_charges_a_response_that_turns_along_the_latent_and_not_a_flat_one() {
-        // Three groups of 4 samples along a line in h, each with the actions (1,0), (0,1),
-        // (-1,0), (0,-1) (so x^T x = 2 I per group), responding by a = u B_g. Turned, B_g is
-        // I, a quarter turn R and -I: one map fits (I + R - I) / 3 = R / 3, leaving
+        // B_g is I, a quarter turn R and -I: one map fits (I + R - I) / 3 = R / 3, leaving
         // 2 (20/9 + 8/9 + 20/9) = 96/9 of the total 3 * 4 = 12, i.e. 8/9; each group's own map
-        // leaves nothing. Flat (B_g = I everywhere) one map explains it all: 0.
+        // leaves nothing. Flat (B_g = I everywhere) one map explains it all: 0. The latent is
+        // turned by (0.6, 0.8), which changes nothing.
         let device = cpu_device();
-        let actions = [[1.0f32, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
         let quarter = [[0.0f32, 1.0], [-1.0, 0.0]];
-        let identity = [[1.0f32, 0.0], [0.0, 1.0]];
-        let minus = [[-1.0f32, 0.0], [0.0, -1.0]];
-        // Rows are shuffled and the latent turned by (0.6, 0.8): the groups come from h's
-        // principal axis, not from the row order, and turning the latent changes nothing.
-        let shuffle = [5usize, 0, 11, 3, 8, 1, 10, 6, 2, 9, 4, 7];
-        let (c, s) = (0.6f32, 0.8f32);
-        let build = |maps: [[[f32; 2]; 2]; 3]| {
-            let (mut h, mut u, mut a) = (vec![], vec![], vec![]);
-            for &row in &shuffle {
-                let (group, k) = (row / 4, row % 4);
-                let position = row as f32;
-                h.extend([position * c, position * s]);
-                let [u0, u1] = actions[k];
-                u.extend([u0, u1]);
-                let b = maps[group];
-                let (a0, a1) = (u0 * b[0][0] + u1 * b[1][0], u0 * b[0][1] + u1 * b[1][1]);
-                // The response turned with the latent.
-                a.extend([a0 * c - a1 * s, a0 * s + a1 * c]);
-            }
-            (
-                t2(&h, 12, 2, &device),
-                t2(&u, 12, 2, &device),
-                t2(&a, 12, 2, &device),
-            )
-        };
         let turn = |maps, regions| {
-            let (h, u, a) = build(maps);
+            let (h, u, a) = regional_responses(maps, (0.6, 0.8), &device);
             scalar(action_response_turn(a, u, h, regions))
         };
-        assert!((turn([identity, quarter, minus], 3) - 8.0 / 9.0).abs() < 1e-5);
-        assert!(turn([identity, identity, identity], 3).abs() < 1e-5);
+        assert!((turn([IDENTITY, quarter, MINUS], 3) - 8.0 / 9.0).abs() < 1e-5);
+        assert!(turn([IDENTITY, IDENTITY, IDENTITY], 3).abs() < 1e-5);
         // The flat-chart term sees the turned batch only as a share no map explains.
-        let (_, u, a) = build([identity, quarter, minus]);
+        let (_, u, a) = regional_responses([IDENTITY, quarter, MINUS], (0.6, 0.8), &device);
         assert!((scalar(action_response_unexplained(a, u)) - 8.0 / 9.0).abs() < 1e-5);
         // Groups of 3 rows cannot fit 2 regressors and an intercept: no judgement.
-        assert_eq!(turn([identity, quarter, minus], 4), 0.0);
+        assert_eq!(turn([IDENTITY, quarter, MINUS], 4), 0.0);
+    }
+
+    #[test]
+    fn sign_term_charges_regions_whose_response_runs_backwards() {
+        // B_g = I, I, -I: the whole batch fits I / 3, whose entries' root mean square is
+        // sqrt(2 / 9 / 4) = 1 / (3 sqrt 2). The third group's diagonal is (-1, -1): relu sum 2,
+        // mean over the 3 groups 2/3, over the scale: 2 sqrt 2.
+        let device = cpu_device().autodiff();
+        let sign = |maps, regions| {
+            let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
+            scalar(action_response_sign(a, u, h, regions))
+        };
+        let want = 2.0 * 2f64.sqrt();
+        assert!((sign([IDENTITY, IDENTITY, MINUS], 3) - want).abs() < 1e-4);
+        // Responses that move each coordinate forwards cost nothing, turned or not (a 60
+        // degree turn keeps the diagonal at cos 60 > 0).
+        let turned = [[0.5f32, 0.866], [-0.866, 0.5]];
+        assert_eq!(sign([IDENTITY, turned, IDENTITY], 3), 0.0);
+        // Overall scale does not matter: the same batch at a tenth of the response.
+        let tenth = |m: [[f32; 2]; 2]| m.map(|row| row.map(|v| v / 10.0));
+        assert!((sign([tenth(IDENTITY), tenth(IDENTITY), tenth(MINUS)], 3) - want).abs() < 1e-3);
+        // Too few rows per group: no judgement.
+        assert_eq!(sign([IDENTITY, IDENTITY, MINUS], 4), 0.0);
+        // The gradient reaches only the backwards group's responses (rows 8-11 before the
+        // shuffle), pushing each along its own action: d/da of -B_ii with B = (x^T x)^-1 x^T a
+        // is -u_i / 2 per row, times 1 / (3 groups x the scale 1 / (3 sqrt 2)) = sqrt 2.
+        let (h, u, a) = regional_responses([IDENTITY, IDENTITY, MINUS], (1.0, 0.0), &device);
+        let a = a.require_grad();
+        let loss = action_response_sign(a.clone(), u.clone(), h, 3);
+        let grads = loss.backward();
+        let got = to_vec(a.grad(&grads).expect("gradient of a"));
+        let u = to_vec(u);
+        let shuffle = [5usize, 0, 11, 3, 8, 1, 10, 6, 2, 9, 4, 7];
+        for (k, &row) in shuffle.iter().enumerate() {
+            for i in 0..2 {
+                let want = if row >= 8 {
+                    -f64::from(u[2 * k + i]) / 2.0 * 2f64.sqrt()
+                } else {
+                    0.0
+                };
+                assert!(
+                    (f64::from(got[2 * k + i]) - want).abs() < 1e-4,
+                    "row {row}, dim {i}"
+                );
+            }
+        }
     }
 
     #[test]
@@ -2015,6 +2180,10 @@ mod tests {
         assert_eq!(
             bad(|c| c.action_response_turn_weight = -1.0),
             "loss.action_response_turn_weight"
+        );
+        assert_eq!(
+            bad(|c| c.action_response_sign_weight = f64::NAN),
+            "loss.action_response_sign_weight"
         );
         assert_eq!(
             bad(|c| c.action_response_regions = 1),

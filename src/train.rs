@@ -1393,6 +1393,7 @@ mod tests {
         config.loss.action_response_horizon = 3;
         config.loss.action_response_weight = 2.0;
         config.loss.action_response_turn_weight = 5.0;
+        config.loss.action_response_sign_weight = 6.0;
         config.loss.separation_weight = 3.0;
         // A ratio far above any fresh latent's, so every pair is charged.
         config.loss.separation_ratio = 10.0;
@@ -1420,6 +1421,7 @@ mod tests {
             + loss.variance_weight * term("var")
             + loss.action_response_weight * term("flat")
             + loss.action_response_turn_weight * term("turn")
+            + loss.action_response_sign_weight * term("sign")
             + loss.separation_weight * term("sep")
             + loss.decoder_weight * term("dec")
             + loss.stretch_weight * term("stretch");
@@ -1429,6 +1431,7 @@ mod tests {
         );
         assert!(term("var") > 1.0 && term("flat") > 0.0, "{values}");
         assert!((0.0..=1.0).contains(&term("turn")), "{values}");
+        assert!(term("sign") >= 0.0, "{values}");
         assert!(term("sep") > 0.0 && term("stretch") > 0.0, "{values}");
         // The decoder starts constant: it leaves all of the features' variance.
         assert!((term("dec") - 1.0).abs() < 1e-5, "{values}");
