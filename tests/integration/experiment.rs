@@ -50,6 +50,11 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
         for row in &results.rows[..3] {
             assert!(row.final_mean.is_finite() && row.control_time_us_p50.is_some());
             assert!(row.train_seconds.is_some() && row.linear_r2.is_some());
+            // Every env's latent has as many dimensions as its configuration.
+            assert!(
+                row.pushes_away_share
+                    .is_some_and(|x| (0.0..=1.0).contains(&x))
+            );
             let run = out.join(row.run.as_ref().unwrap());
             for file in ["latent_traj.png", "latent_map.png", "eval.json"] {
                 assert!(run.join(file).exists(), "{}", run.join(file).display());
@@ -75,6 +80,7 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
         "Tracking on Fetch-3D",
         "point-mass/ablation.png",
         "reacher/pc3/latent_traj.png",
+        "pairs PD pushes away",
     ] {
         assert!(html.contains(needle), "{needle}");
     }
