@@ -296,6 +296,17 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
     preset.steps = stop22_design.steps;
     assert_eq!(preset, stop22_design);
+    // Stop 29's sign-term cell is the preset with only the sign term's fields set, as run.
+    let mut sign = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+    sign.steps = 1200;
+    sign.loss.action_response_sign_weight = 3.0;
+    sign.loss.action_response_horizon = 5;
+    sign.loss.action_response_velocity = true;
+    sign.loss.action_response_regions = 6;
+    assert_eq!(
+        sign,
+        cell("stop29_preset_action_response_sign_weight=3_k=5_velocity_regions=6")
+    );
     let stop20_preset = |c: &mut TrainConfig| (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
     let mut expected = new_design.clone();
     stop20_preset(&mut expected);
