@@ -1465,6 +1465,7 @@ mod tests {
         // Switched off, a term is logged as 0 and the header keeps its column.
         config.loss.action_response_weight = 0.0;
         config.loss.action_response_turn_weight = 0.0;
+        config.loss.action_response_sign_weight = 0.0;
         config.loss.variance_floor = None;
         config.loss.separation_weight = 0.0;
         config.loss.decoder_weight = 0.0;
@@ -1475,7 +1476,7 @@ mod tests {
         let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
             .into();
-        for name in ["var", "flat", "turn", "sep", "dec", "stretch"] {
+        for name in ["var", "flat", "turn", "sign", "sep", "dec", "stretch"] {
             assert_eq!(off.get(name), Some(0.0), "{off}");
         }
         assert_eq!(off.names, &LOSS_NAMES);
@@ -1494,13 +1495,13 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text,
-            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,seconds\n\
-             1,5,1,2,0,0.5,,,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,,,3\n"
+            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,sign,seconds\n\
+             1,5,1,2,0,0.5,,,,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,,,,3\n"
         );
         // Under the current header rows are kept as they are.
         truncate_metrics(&path, 1, &header).expect("truncate again");
         let text = std::fs::read_to_string(&path).expect("read");
-        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,,,1.5\n"));
+        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,,,,1.5\n"));
     }
 
     #[test]
