@@ -55,12 +55,12 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<f64>> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
-        Some("step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,seconds")
+        Some("step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,sign,seconds")
     );
     lines
         .map(|line| {
             let mut row: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
-            assert_eq!(row.len(), 13, "bad row {line}");
+            assert_eq!(row.len(), 14, "bad row {line}");
             row.pop();
             row
         })
