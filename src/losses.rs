@@ -363,18 +363,8 @@ pub fn action_response_turn(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: u
     let Some((residual_one, total)) = least_squares_sums(a.clone(), x.clone()) else {
         return zero();
     };
-    let order = principal_axis_order(h);
     let mut residual_regions = zero();
-    for r in 0..regions {
-        // Near-equal contiguous groups: rows [r n / R, (r + 1) n / R) of the order.
-        let rows: Vec<i64> = order[r * n / regions..(r + 1) * n / regions]
-            .iter()
-            .map(|&i| i as i64)
-            .collect();
-        let index = Tensor::<1, burn::tensor::Int>::from_data(
-            TensorData::new(rows.clone(), [rows.len()]),
-            &device,
-        );
+    for index in principal_axis_groups(h, regions) {
         let Some((residual, _)) = least_squares_sums(
             a.clone().select(0, index.clone()),
             x.clone().select(0, index),
@@ -433,17 +423,8 @@ pub fn action_response_sign(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: u
     if !(scale.is_finite() && scale > 0.0) {
         return zero();
     }
-    let order = principal_axis_order(h);
     let mut total = zero();
-    for r in 0..regions {
-        let rows: Vec<i64> = order[r * n / regions..(r + 1) * n / regions]
-            .iter()
-            .map(|&i| i as i64)
-            .collect();
-        let index = Tensor::<1, burn::tensor::Int>::from_data(
-            TensorData::new(rows.clone(), [rows.len()]),
-            &device,
-        );
+    for index in principal_axis_groups(h, regions) {
         let Some(local) = least_squares_coefficients(
             a.clone().select(0, index.clone()),
             x.clone().select(0, index),
@@ -609,6 +590,25 @@ fn principal_axis_order(h: Tensor<2>) -> Vec<usize> {
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|&i, &j| projection[i].total_cmp(&projection[j]));
     order
+}
+
+/// The row indices of `regions` near-equal contiguous groups of `h [n, du]` along its first
+/// principal axis: rows `[r n / R, (r + 1) n / R)` of [`principal_axis_order`] for group `r`
+/// (the groups of the turn and sign terms).
+fn principal_axis_groups(h: Tensor<2>, regions: usize) -> Vec<Tensor<1, burn::tensor::Int>> {
+    let [n, _] = h.dims();
+    let device = h.device();
+    let order = principal_axis_order(h);
+    (0..regions)
+        .map(|r| {
+            let rows: Vec<i64> = order[r * n / regions..(r + 1) * n / regions]
+                .iter()
+                .map(|&i| i as i64)
+                .collect();
+            let len = rows.len();
+            Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(rows, [len]), &device)
+        })
+        .collect()
 }
 
 /// The factor `c / std(h_t)` (`[1, du]`, gradient through the std) that the Lyapunov risk
