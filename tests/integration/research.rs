@@ -281,9 +281,9 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     assert_eq!(floor.loss.variance_floor, Some(1.0));
     assert_eq!(floor.steps, 1200);
     assert_eq!(floor.model.encoder.init_latent_std, Some(1.0));
-    // The reacher's procl preset is the design the stop-21 cell measured: stop 15's with no
-    // velocity term in `V`, ten times its risk weight (stop 20), and stop 18's pairwise angles
-    // over 32x32 cells (stop 22).
+    // The reacher's procl preset is the design the stop-29 sign-term cell measured: stop 15's
+    // with no velocity term in `V`, ten times its risk weight (stop 20), stop 18's pairwise
+    // angles over 32x32 cells (stop 22; the stop-21 cell), and the sign term (stop 30).
     let cell = |name: &str| {
         let (_, cell) = configs.iter().find(|(n, _)| n == name).unwrap();
         cell.clone()
@@ -293,20 +293,19 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let stop22_design = cell(
         "stop21_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15_trunk_second_stride=1",
     );
-    let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-    preset.steps = stop22_design.steps;
-    assert_eq!(preset, stop22_design);
-    // Stop 29's sign-term cell is the preset with only the sign term's fields set, as run.
-    let mut sign = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-    sign.steps = 1200;
-    sign.loss.action_response_sign_weight = 3.0;
-    sign.loss.action_response_horizon = 5;
-    sign.loss.action_response_velocity = true;
-    sign.loss.action_response_regions = 6;
+    let mut sign_preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+    sign_preset.steps = 1200;
     assert_eq!(
-        sign,
+        sign_preset,
         cell("stop29_preset_action_response_sign_weight=3_k=5_velocity_regions=6")
     );
+    // Stops 22-29's preset is the same without the sign term's four fields.
+    let mut preset = sign_preset.clone();
+    preset.loss.action_response_sign_weight = 0.0;
+    preset.loss.action_response_horizon = 1;
+    preset.loss.action_response_velocity = false;
+    preset.loss.action_response_regions = 3;
+    assert_eq!(preset, stop22_design);
     let stop20_preset = |c: &mut TrainConfig| (c.loss.q_v, c.loss.lambda_r) = (0.0, 1.0);
     let mut expected = new_design.clone();
     stop20_preset(&mut expected);
