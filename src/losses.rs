@@ -135,6 +135,14 @@ pub struct LossConfig {
     /// least 2.
     #[serde(default = "default_action_response_regions")]
     pub action_response_regions: usize,
+    /// How the turn and sign terms split the batch into their groups: contiguous slices along
+    /// the first principal axis of `h_t` (`principal-axis`), or k-means clusters of `h_t`
+    /// (`clusters`). A latent that hooks back at one end projects its hook onto the principal
+    /// axis among the samples it turned back past, so a slice mixes both and averages the
+    /// hook's backwards response away (docs/method.md, reacher stop 29); a cluster follows the
+    /// curve in the plane, so the hook's tip gets a group of its own.
+    #[serde(default)]
+    pub action_response_grouping: ResponseGrouping,
     /// Separation term: adds `separation_weight * mean_{i != j} relu(rho D_ij - d_ij)^2 /
     /// rho^2` over the batch's frames `i_t` (0: off, the paper), where `D_ij` is the squared
     /// distance between frames `i` and `j` (each averaged over 4x4 pixel blocks) over its batch
@@ -229,6 +237,18 @@ fn default_decoder_noise() -> f64 {
 
 fn default_action_response_regions() -> usize {
     3
+}
+
+/// How the turn and sign terms group the batch (see [`LossConfig::action_response_grouping`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ResponseGrouping {
+    /// Near-equal contiguous slices along the batch's first principal axis of `h_t`.
+    #[default]
+    PrincipalAxis,
+    /// k-means clusters of `h_t` (farthest-point start, Lloyd's iterations), each of at least
+    /// the rows a fit needs.
+    Clusters,
 }
 
 /// The axes the variance floor holds (see [`LossConfig::variance_axes`]).
@@ -350,10 +370,16 @@ fn least_squares_sums(a: Tensor<2>, x: Tensor<2>) -> Option<(Tensor<1>, Tensor<1
 
 /// The turn term (see [`LossConfig::action_response_turn_weight`]): `(RSS_1 - sum_r RSS_r) /
 /// TSS` for the response `a [n, d]` on the regressors `x [n, p]`, one least-squares map for the
-/// whole batch against one per group of `regions` contiguous groups along the first principal
-/// axis of `h [n, du]` (the grouping is held fixed, like the maps). 0 when a group has too few
-/// rows to fit (`p + 2`) or a fit is degenerate.
-pub fn action_response_turn(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: usize) -> Tensor<1> {
+/// whole batch against one per group of `regions` groups of `h [n, du]` made by `grouping`
+/// (held fixed, like the maps). 0 when the batch has too few rows per group to fit (`p + 2`)
+/// or a fit is degenerate.
+pub fn action_response_turn(
+    a: Tensor<2>,
+    x: Tensor<2>,
+    h: Tensor<2>,
+    regions: usize,
+    grouping: ResponseGrouping,
+) -> Tensor<1> {
     let device = x.device();
     let zero = || Tensor::zeros([1], &device);
     let [n, p] = x.dims();
@@ -364,7 +390,7 @@ pub fn action_response_turn(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: u
         return zero();
     };
     let mut residual_regions = zero();
-    for index in principal_axis_groups(h, regions) {
+    for index in response_groups(h, regions, grouping, p + 2) {
         let Some((residual, _)) = least_squares_sums(
             a.clone().select(0, index.clone()),
             x.clone().select(0, index),
@@ -394,11 +420,17 @@ fn least_squares_coefficients(a: Tensor<2>, x: Tensor<2>) -> Option<Tensor<2>> {
 }
 
 /// The sign term (see [`LossConfig::action_response_sign_weight`]) of the response `a [n, d]`
-/// on the regressors `x [n, p]`, whose last `d` columns are the drive: the mean over `regions`
-/// groups along the first principal axis of `h [n, d]` of `sum_i relu(-D_r[i, i]) / s`. 0 when
-/// `x` has fewer than `d` columns, a group has too few rows to fit (`p + 2`), or a fit is
-/// degenerate.
-pub fn action_response_sign(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: usize) -> Tensor<1> {
+/// on the regressors `x [n, p]`, whose last `d` columns are the drive: the mean over the groups
+/// of `h [n, d]` that `grouping` makes (`regions` of them, fewer where clusters were too small to
+/// fit) of `sum_i relu(-D_r[i, i]) / s`. 0 when `x` has fewer than `d` columns, the batch has too
+/// few rows per group to fit (`p + 2`), or a fit is degenerate.
+pub fn action_response_sign(
+    a: Tensor<2>,
+    x: Tensor<2>,
+    h: Tensor<2>,
+    regions: usize,
+    grouping: ResponseGrouping,
+) -> Tensor<1> {
     let device = x.device();
     let zero = || Tensor::zeros([1], &device);
     let [n, p] = x.dims();
@@ -424,7 +456,9 @@ pub fn action_response_sign(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: u
         return zero();
     }
     let mut total = zero();
-    for index in principal_axis_groups(h, regions) {
+    let groups = response_groups(h, regions, grouping, p + 2);
+    let count = groups.len();
+    for index in groups {
         let Some(local) = least_squares_coefficients(
             a.clone().select(0, index.clone()),
             x.clone().select(0, index),
@@ -436,7 +470,7 @@ pub fn action_response_sign(a: Tensor<2>, x: Tensor<2>, h: Tensor<2>, regions: u
                 .sum()
                 .reshape([1]);
     }
-    total / (regions as f64 * scale)
+    total / (count as f64 * scale)
 }
 
 /// The separation term (see [`LossConfig::separation_weight`]) of the latents `h [n, du]`
@@ -592,22 +626,131 @@ fn principal_axis_order(h: Tensor<2>) -> Vec<usize> {
     order
 }
 
-/// The row indices of `regions` near-equal contiguous groups of `h [n, du]` along its first
-/// principal axis: rows `[r n / R, (r + 1) n / R)` of [`principal_axis_order`] for group `r`
-/// (the groups of the turn and sign terms).
-fn principal_axis_groups(h: Tensor<2>, regions: usize) -> Vec<Tensor<1, burn::tensor::Int>> {
+/// The row indices of the turn and sign terms' groups of `h [n, du]`: `regions` near-equal
+/// contiguous slices along its first principal axis (rows `[r n / R, (r + 1) n / R)` of
+/// [`principal_axis_order`] for group `r`), or its k-means clusters of at least `min_rows` rows
+/// ([`cluster_rows`]).
+fn response_groups(
+    h: Tensor<2>,
+    regions: usize,
+    grouping: ResponseGrouping,
+    min_rows: usize,
+) -> Vec<Tensor<1, burn::tensor::Int>> {
     let [n, _] = h.dims();
     let device = h.device();
-    let order = principal_axis_order(h);
-    (0..regions)
-        .map(|r| {
-            let rows: Vec<i64> = order[r * n / regions..(r + 1) * n / regions]
-                .iter()
-                .map(|&i| i as i64)
+    let groups: Vec<Vec<usize>> = match grouping {
+        ResponseGrouping::PrincipalAxis => {
+            let order = principal_axis_order(h);
+            (0..regions)
+                .map(|r| order[r * n / regions..(r + 1) * n / regions].to_vec())
+                .collect()
+        }
+        ResponseGrouping::Clusters => {
+            let [_, du] = h.dims();
+            let values: Vec<f64> = crate::model::to_vec(h.detach())
+                .into_iter()
+                .map(f64::from)
                 .collect();
+            let points: Vec<&[f64]> = values.chunks(du).collect();
+            cluster_rows(&points, regions, min_rows)
+        }
+    };
+    groups
+        .into_iter()
+        .map(|rows| {
             let len = rows.len();
+            let rows: Vec<i64> = rows.into_iter().map(|i| i as i64).collect();
             Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(rows, [len]), &device)
         })
+        .collect()
+}
+
+/// k-means clusters of `points` as lists of row indices, deterministic: the centres start at
+/// the point farthest from the mean and then, one by one, at the point farthest from every
+/// centre so far (so a curve's ends get centres first), and Lloyd's iterations run until no
+/// point changes cluster (at most 100). A cluster with fewer than `min_rows` points is then
+/// dissolved into the nearest remaining ones, smallest first, so every group can be fitted;
+/// fewer than `regions` groups come back where that happens or the points are fewer distinct.
+fn cluster_rows(points: &[&[f64]], regions: usize, min_rows: usize) -> Vec<Vec<usize>> {
+    let n = points.len();
+    if n == 0 || regions == 0 {
+        return Vec::new();
+    }
+    let squared =
+        |a: &[f64], b: &[f64]| -> f64 { a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum() };
+    let dims = points[0].len();
+    let mean: Vec<f64> = (0..dims)
+        .map(|j| points.iter().map(|p| p[j]).sum::<f64>() / n as f64)
+        .collect();
+    // The index of the largest value (the first among equals).
+    let farthest = |score: &dyn Fn(usize) -> f64| {
+        (0..n).fold((0, f64::NEG_INFINITY), |best, i| {
+            let s = score(i);
+            if s > best.1 { (i, s) } else { best }
+        })
+    };
+    let mut centres: Vec<Vec<f64>> =
+        vec![points[farthest(&|i| squared(points[i], &mean)).0].to_vec()];
+    while centres.len() < regions {
+        let (next, distance) = farthest(&|i| {
+            centres
+                .iter()
+                .map(|c| squared(points[i], c))
+                .fold(f64::INFINITY, f64::min)
+        });
+        if distance <= 0.0 {
+            break;
+        }
+        centres.push(points[next].to_vec());
+    }
+    let nearest = |p: &[f64], centres: &[Vec<f64>]| {
+        (0..centres.len())
+            .fold((0, f64::INFINITY), |best, c| {
+                let d = squared(p, &centres[c]);
+                if d < best.1 { (c, d) } else { best }
+            })
+            .0
+    };
+    let mut assignment = vec![usize::MAX; n];
+    for _ in 0..100 {
+        let next: Vec<usize> = points.iter().map(|p| nearest(p, &centres)).collect();
+        if next == assignment {
+            break;
+        }
+        assignment = next;
+        for (c, centre) in centres.iter_mut().enumerate() {
+            let members: Vec<&[f64]> = (0..n)
+                .filter(|&i| assignment[i] == c)
+                .map(|i| points[i])
+                .collect();
+            if !members.is_empty() {
+                for (j, value) in centre.iter_mut().enumerate() {
+                    *value = members.iter().map(|p| p[j]).sum::<f64>() / members.len() as f64;
+                }
+            }
+        }
+    }
+    loop {
+        let sizes: Vec<usize> = (0..centres.len())
+            .map(|c| assignment.iter().filter(|&&a| a == c).count())
+            .collect();
+        let smallest = (0..centres.len()).min_by_key(|&c| (sizes[c], c));
+        match smallest {
+            Some(c) if sizes[c] < min_rows && centres.len() > 1 => {
+                centres.remove(c);
+                for i in 0..n {
+                    if assignment[i] == c {
+                        assignment[i] = nearest(points[i], &centres);
+                    } else if assignment[i] > c {
+                        assignment[i] -= 1;
+                    }
+                }
+            }
+            _ => break,
+        }
+    }
+    (0..centres.len())
+        .map(|c| (0..n).filter(|&i| assignment[i] == c).collect())
         .collect()
 }
 
@@ -657,6 +800,7 @@ impl Default for LossConfig {
             action_response_turn_weight: 0.0,
             action_response_sign_weight: 0.0,
             action_response_regions: default_action_response_regions(),
+            action_response_grouping: ResponseGrouping::PrincipalAxis,
             separation_weight: 0.0,
             separation_ratio: default_separation_ratio(),
             decoder_weight: 0.0,
@@ -1110,6 +1254,7 @@ pub fn procl_loss(
                 regressors.clone(),
                 h_now.clone(),
                 config.action_response_regions,
+                config.action_response_grouping,
             )
         } else {
             zero()
@@ -1120,6 +1265,7 @@ pub fn procl_loss(
                 regressors,
                 h_now.clone(),
                 config.action_response_regions,
+                config.action_response_grouping,
             )
         } else {
             zero()
@@ -1833,7 +1979,13 @@ mod tests {
         let quarter = [[0.0f32, 1.0], [-1.0, 0.0]];
         let turn = |maps, regions| {
             let (h, u, a) = regional_responses(maps, (0.6, 0.8), &device);
-            scalar(action_response_turn(a, u, h, regions))
+            scalar(action_response_turn(
+                a,
+                u,
+                h,
+                regions,
+                ResponseGrouping::PrincipalAxis,
+            ))
         };
         assert!((turn([IDENTITY, quarter, MINUS], 3) - 8.0 / 9.0).abs() < 1e-5);
         assert!(turn([IDENTITY, IDENTITY, IDENTITY], 3).abs() < 1e-5);
@@ -1852,7 +2004,13 @@ mod tests {
         let device = cpu_device().autodiff();
         let sign = |maps, regions| {
             let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
-            scalar(action_response_sign(a, u, h, regions))
+            scalar(action_response_sign(
+                a,
+                u,
+                h,
+                regions,
+                ResponseGrouping::PrincipalAxis,
+            ))
         };
         let want = 2.0 * 2f64.sqrt();
         assert!((sign([IDENTITY, IDENTITY, MINUS], 3) - want).abs() < 1e-4);
@@ -1870,7 +2028,8 @@ mod tests {
         // is -u_i / 2 per row, times 1 / (3 groups x the scale 1 / (3 sqrt 2)) = sqrt 2.
         let (h, u, a) = regional_responses([IDENTITY, IDENTITY, MINUS], (1.0, 0.0), &device);
         let a = a.require_grad();
-        let loss = action_response_sign(a.clone(), u.clone(), h, 3);
+        let loss =
+            action_response_sign(a.clone(), u.clone(), h, 3, ResponseGrouping::PrincipalAxis);
         let grads = loss.backward();
         let got = to_vec(a.grad(&grads).expect("gradient of a"));
         let u = to_vec(u);
@@ -1888,6 +2047,89 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A latent that hooks back (24 rows): an arm `A` of 8 points along `y = 0` near the
+    /// origin with response `I`, and at `x` 10 to 10.75 two runs side by side, `B` at `y =
+    /// -0.5` (response `I`) and the hook `C` at `y = 0.5` (response `-I`), interleaved along
+    /// `x` in steps of 0.05. Each run holds each of the four unit actions twice.
+    fn hooked_responses(device: &Device) -> (Tensor<2>, Tensor<2>, Tensor<2>) {
+        let actions = [[1.0f32, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
+        let (mut h, mut u, mut a) = (vec![], vec![], vec![]);
+        for j in 0..8 {
+            let [u0, u1] = actions[j % 4];
+            let x = 0.1 * j as f32;
+            for (point, sign) in [
+                ([x, 0.0], 1.0),
+                ([10.0 + x, -0.5], 1.0),
+                ([10.05 + x, 0.5], -1.0),
+            ] {
+                h.extend(point);
+                u.extend([u0, u1]);
+                a.extend([sign * u0, sign * u1]);
+            }
+        }
+        (
+            t2(&h, 24, 2, device),
+            t2(&u, 24, 2, device),
+            t2(&a, 24, 2, device),
+        )
+    }
+
+    #[test]
+    fn clusters_follow_a_hook_that_principal_axis_slices_mix() {
+        let device = cpu_device();
+        let (h, _, _) = hooked_responses(&device);
+        let values: Vec<f64> = to_vec(h.clone()).into_iter().map(f64::from).collect();
+        let points: Vec<&[f64]> = values.chunks(2).collect();
+        // Rows 3j, 3j + 1, 3j + 2 are A_j, B_j, C_j. The centres start at A_0 (farthest from
+        // the mean), C_7 (farthest from A_0) and B_0 (1.5625 from C_7; every A is within 0.49
+        // of A_0, every C within 0.49 of C_7), and Lloyd's iterations keep the three runs.
+        let run = |offset: usize| (0..8).map(|j| 3 * j + offset).collect::<Vec<_>>();
+        assert_eq!(cluster_rows(&points, 3, 4), vec![run(0), run(2), run(1)]);
+        // The principal axis is x (the runs' y offsets cancel), so the slices past A hold B and
+        // C alike.
+        let order = principal_axis_order(h);
+        assert_eq!(order[..8], run(0)[..]);
+        let mut second: Vec<usize> = order[8..16].to_vec();
+        second.sort();
+        assert_eq!(second, vec![1, 2, 4, 5, 7, 8, 10, 11]);
+        // A cluster under `min_rows` is dissolved into the nearest other: the outlier at (4, 20)
+        // starts the first centre, (10, 0) and (0, 0.4) the others; it is left alone and joins
+        // the run at x = 0 (centre (0, 0.2)), the nearer.
+        let mut values = vec![];
+        for j in 0..5 {
+            values.extend([0.0, 0.1 * j as f64, 10.0, 0.1 * j as f64]);
+        }
+        values.extend([4.0, 20.0]);
+        let points: Vec<&[f64]> = values.chunks(2).collect();
+        assert_eq!(
+            cluster_rows(&points, 3, 2),
+            vec![vec![1, 3, 5, 7, 9], vec![0, 2, 4, 6, 8, 10]]
+        );
+        // Identical points make one group, whatever the regions asked for.
+        let same = [1.0, 2.0];
+        assert_eq!(
+            cluster_rows(&[&same, &same, &same], 3, 1),
+            vec![vec![0, 1, 2]]
+        );
+    }
+
+    #[test]
+    fn sign_term_on_clusters_sees_the_hook_that_slices_average_away() {
+        // The whole batch fits I / 3 (A and B give 4 I each to x^T a, C gives -4 I, over x^T x
+        // = 12 I): its drive block's rms entry is 1 / (3 sqrt 2). Slices along the principal
+        // axis hold four rows of B and four of C with the same actions: their maps are 0, and
+        // A's is I, so nothing is charged. Clusters are A, C and B: C's diagonal (-1, -1) gives
+        // 2, over 3 groups and the scale: 2 sqrt 2.
+        let device = cpu_device();
+        let sign = |grouping| {
+            let (h, u, a) = hooked_responses(&device);
+            scalar(action_response_sign(a, u, h, 3, grouping))
+        };
+        assert!(sign(ResponseGrouping::PrincipalAxis).abs() < 1e-5);
+        let got = sign(ResponseGrouping::Clusters);
+        assert!((got - 2.0 * 2f64.sqrt()).abs() < 1e-4, "{got}");
     }
 
     #[test]
