@@ -342,28 +342,42 @@ pub fn action_response_unexplained(a: Tensor<2>, x: Tensor<2>) -> Tensor<1> {
     }
 }
 
+/// `a` and `x` centred over their rows, and the inverse of the centred `x^T x` solved on the
+/// host in f64 (nalgebra): the start of every least-squares fit `a ~ x B + c` here. `None` when
+/// `x` is degenerate (no fit to judge).
+fn centred_gram_inverse(
+    a: Tensor<2>,
+    x: Tensor<2>,
+) -> Option<(Tensor<2>, Tensor<2>, nalgebra::DMatrix<f64>)> {
+    let centre = |t: Tensor<2>| t.clone() - t.mean_dim(0);
+    let (a, x) = (centre(a), centre(x));
+    let inverse = host_matrix(x.clone().transpose().matmul(x.clone()))
+        .try_inverse()
+        .filter(|m| m.iter().all(|v| v.is_finite()))?;
+    Some((a, x, inverse))
+}
+
+/// A tensor's values (row-major `[rows, cols]`, detached) as a column-major nalgebra matrix.
+fn host_matrix(t: Tensor<2>) -> nalgebra::DMatrix<f64> {
+    let [rows, cols] = t.dims();
+    let values = crate::model::to_vec(t.detach());
+    nalgebra::DMatrix::from_row_iterator(rows, cols, values.into_iter().map(f64::from))
+}
+
+/// A host matrix as a constant tensor on `device` (f32, no gradient).
+fn device_matrix(m: &nalgebra::DMatrix<f64>, device: &burn::tensor::Device) -> Tensor<2> {
+    let values: Vec<f32> = m.transpose().iter().map(|&v| v as f32).collect();
+    Tensor::<2>::from_data(TensorData::new(values, [m.nrows(), m.ncols()]), device)
+}
+
 /// The least-squares fit `a ~ x B + c` over the given rows: its residual sum of squares (with
 /// the gradient of [`action_response_unexplained`]: `B` fixed at the optimum) and the centred
 /// total sum of squares of `a`, `[1]` each. `None` when `x` is degenerate (no fit to judge).
 fn least_squares_sums(a: Tensor<2>, x: Tensor<2>) -> Option<(Tensor<1>, Tensor<1>)> {
-    let [_, p] = x.dims();
-    let [_, d] = a.dims();
-    let device = x.device();
-    let centre = |t: Tensor<2>| t.clone() - t.mean_dim(0);
-    let (a, x) = (centre(a), centre(x));
-    let host = |t: Tensor<2>, rows: usize, cols: usize| {
-        // Row-major [rows, cols] from the tensor into a column-major nalgebra matrix.
-        let values = crate::model::to_vec(t.detach());
-        nalgebra::DMatrix::from_row_iterator(rows, cols, values.into_iter().map(f64::from))
-    };
-    let gram = host(x.clone().transpose().matmul(x.clone()), p, p);
-    let cross = host(x.clone().transpose().matmul(a.clone()), p, d);
-    let coefficients = gram
-        .try_inverse()
-        .map(|inverse| inverse * cross)
+    let (a, x, inverse) = centred_gram_inverse(a, x)?;
+    let coefficients = Some(inverse * host_matrix(x.clone().transpose().matmul(a.clone())))
         .filter(|m| m.iter().all(|v| v.is_finite()))?;
-    let coefficients: Vec<f32> = coefficients.transpose().iter().map(|&v| v as f32).collect();
-    let coefficients = Tensor::<2>::from_data(TensorData::new(coefficients, [p, d]), &device);
+    let coefficients = device_matrix(&coefficients, &x.device());
     let residual = (a.clone() - x.matmul(coefficients)).powi_scalar(2).sum();
     Some((residual.reshape([1]), a.powi_scalar(2).sum().reshape([1])))
 }
@@ -405,18 +419,8 @@ pub fn action_response_turn(
 /// The least-squares coefficients `B [p, d]` of `a ~ x B + c` with the gradient through `x^T a`
 /// only: `(x^T x)^-1` is solved on the host and held fixed. `None` when `x` is degenerate.
 fn least_squares_coefficients(a: Tensor<2>, x: Tensor<2>) -> Option<Tensor<2>> {
-    let [_, p] = x.dims();
-    let device = x.device();
-    let centre = |t: Tensor<2>| t.clone() - t.mean_dim(0);
-    let (a, x) = (centre(a), centre(x));
-    let gram = crate::model::to_vec(x.clone().transpose().matmul(x.clone()).detach());
-    let gram = nalgebra::DMatrix::from_row_iterator(p, p, gram.into_iter().map(f64::from));
-    let inverse = gram
-        .try_inverse()
-        .filter(|m| m.iter().all(|v| v.is_finite()))?;
-    let inverse: Vec<f32> = inverse.transpose().iter().map(|&v| v as f32).collect();
-    let inverse = Tensor::<2>::from_data(TensorData::new(inverse, [p, p]), &device);
-    Some(inverse.matmul(x.transpose().matmul(a)))
+    let (a, x, inverse) = centred_gram_inverse(a, x)?;
+    Some(device_matrix(&inverse, &x.device()).matmul(x.transpose().matmul(a)))
 }
 
 /// The sign term (see [`LossConfig::action_response_sign_weight`]) of the response `a [n, d]`
