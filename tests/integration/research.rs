@@ -299,6 +299,16 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         sign_preset,
         cell("stop29_preset_action_response_sign_weight=3_k=5_velocity_regions=6")
     );
+    // Stop 30's variants of the preset: the floor on the principal axes, the groups as clusters.
+    let mut expected = sign_preset.clone();
+    expected.loss.variance_axes = procl::losses::VarianceAxes::Principal;
+    assert_eq!(expected, cell("stop30_preset_variance_axes=principal"));
+    let mut expected = sign_preset.clone();
+    expected.loss.action_response_grouping = procl::losses::ResponseGrouping::Clusters;
+    assert_eq!(
+        expected,
+        cell("stop30_preset_action_response_grouping=clusters")
+    );
     // Stops 22-29's preset is the same without the sign term's four fields.
     let mut preset = sign_preset.clone();
     preset.loss.action_response_sign_weight = 0.0;
