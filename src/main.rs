@@ -242,6 +242,11 @@ fn progress_bar(len: u64, what: &str) -> ProgressBar {
     bar
 }
 
+/// A share as a percentage with two decimals, `-` when undefined.
+fn percent(share: Option<f64>) -> String {
+    share.map_or("-".into(), |x| format!("{:.2}%", 100.0 * x))
+}
+
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Collect {
@@ -346,12 +351,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             }
             let d = procl::eval::write_diagnostics(&run)?;
             println!(
-                "latent: linear R^2 of q from h = {:.3}, 5-NN R^2 = {:.3}, folded pairs {:.3}%, pairs PD pushes away {}, det(q -> h map) = {} (latent_map.png, diagnostics.json)",
+                "latent: linear R^2 of q from h = {:.3}, 5-NN R^2 = {:.3}, folded pairs {:.3}%, pairs PD pushes away {}, locally unstable {}, near-singular {}, det(q -> h map) = {} (latent_map.png, diagnostics.json)",
                 d.linear_r2,
                 d.knn_r2,
                 100.0 * d.folded_share,
-                d.pushes_away_share
-                    .map_or("-".into(), |x| format!("{:.2}%", 100.0 * x)),
+                percent(d.pushes_away_share),
+                percent(d.locally_unstable_share),
+                percent(d.near_singular_share),
                 d.config_to_latent_det
                     .map_or("-".into(), |x| format!("{x:.3}"))
             );

@@ -35,6 +35,17 @@ pub struct LatentDiagnostics {
     /// from the goal (see [`pushes_away_share`]); `None` when `h` and `q` differ in dimension.
     #[serde(default)]
     pub pushes_away_share: Option<f64>,
+    /// Share of the grid's interior cells whose local map `dh/dq` (central differences) PD
+    /// cannot hold a goal with: an eigenvalue with no positive real part (see
+    /// [`local_map_shares`]); `None` unless `q` and `h` are both 2-D.
+    #[serde(default)]
+    pub locally_unstable_share: Option<f64>,
+    /// Share of the grid's interior cells whose local map is nearly singular: its smaller
+    /// singular value under [`NEAR_SINGULAR`] of its larger, so a valley of configurations
+    /// shares one latent and PD stops anywhere along it (the reacher's near misses with the
+    /// wrist straight; docs/method.md, reacher stop 30). `None` unless `q` and `h` are 2-D.
+    #[serde(default)]
+    pub near_singular_share: Option<f64>,
     /// Grid points encoded.
     pub points: usize,
 }
@@ -127,6 +138,60 @@ pub fn pushes_away_share(latents: &[Vec<f64>], configs: &[Vec<f64>]) -> Option<f
         .filter(|&(i, j)| work(i, j) <= 0.0)
         .count();
     Some(away as f64 / pairs as f64)
+}
+
+/// A local map counts as nearly singular when its smaller singular value is under this share of
+/// its larger.
+pub const NEAR_SINGULAR: f64 = 0.1;
+
+/// The local maps `J = dh/dq` at the interior points of a `side x side` grid of 2-D
+/// configurations in [`config_grid`]'s order (`k = i + side j`, `i` along `q_0`), by central
+/// differences, summarised as the shares of them that are locally unstable under PD and nearly
+/// singular: `(unstable, near_singular)`.
+///
+/// PD on the latent applies `u = Kp (h* - h) - Kd dh/dt` through one gear per joint, so near a
+/// goal `M q'' = -J (Kp dq + Kd q')`: with `M` near a multiple of the identity it holds the goal
+/// only where both eigenvalues of `J` have positive real parts, for a 2x2 map `tr J > 0` and
+/// `det J > 0` (a map turned past 90 degrees or mirrored fails). A nearly singular `J` holds
+/// the goal only up to a valley. `None` unless every configuration and latent is 2-D and
+/// there are `side^2 >= 9` of each.
+pub fn local_map_shares(
+    latents: &[Vec<f64>],
+    configs: &[Vec<f64>],
+    side: usize,
+) -> Option<(f64, f64)> {
+    let n = side * side;
+    let two_d = |v: &[Vec<f64>]| v.len() == n && v.iter().all(|x| x.len() == 2);
+    if side < 3 || !two_d(latents) || !two_d(configs) {
+        return None;
+    }
+    let (mut unstable, mut singular, mut cells) = (0usize, 0usize, 0usize);
+    for j in 1..side - 1 {
+        for i in 1..side - 1 {
+            let k = i + side * j;
+            // Column c of J: the latent's change over the configuration's along q_c.
+            let column = |before: usize, after: usize, c: usize| -> [f64; 2] {
+                let dq = configs[after][c] - configs[before][c];
+                [0, 1].map(|r| (latents[after][r] - latents[before][r]) / dq)
+            };
+            let (a, b) = (column(k - 1, k + 1, 0), column(k - side, k + side, 1));
+            let (trace, det) = (a[0] + b[1], a[0] * b[1] - b[0] * a[1]);
+            // Singular values: s^2 = (F +- sqrt(F^2 - 4 det^2)) / 2, F the squared norm.
+            let frobenius = a[0] * a[0] + a[1] * a[1] + b[0] * b[0] + b[1] * b[1];
+            let spread = (frobenius * frobenius - 4.0 * det * det).max(0.0).sqrt();
+            let (large, small) = (
+                (frobenius + spread) / 2.0,
+                (frobenius - spread).max(0.0) / 2.0,
+            );
+            cells += 1;
+            unstable += usize::from(!(trace > 0.0 && det > 0.0));
+            singular += usize::from(small.sqrt() < NEAR_SINGULAR * large.sqrt());
+        }
+    }
+    Some((
+        unstable as f64 / cells as f64,
+        singular as f64 / cells as f64,
+    ))
 }
 
 /// Leave-one-out `k`-nearest-neighbour regression of `targets` from `inputs` (Euclidean in
@@ -320,8 +385,10 @@ pub fn latent_diagnostics(
     device: &Device,
     png: Option<&Path>,
 ) -> Result<LatentDiagnostics> {
-    let configs = config_grid(env, 24);
+    let side = 24;
+    let configs = config_grid(env, side);
     let latents = encode_configs(env, encoder, &configs, device)?;
+    let local = local_map_shares(&latents, &configs, side);
     let (_, r2) = linear_fit(&latents, &configs);
     let (to_latent, _) = linear_fit(&configs, &latents);
     let square: Vec<Vec<f64>> = to_latent
@@ -343,6 +410,8 @@ pub fn latent_diagnostics(
         },
         folded_share: folded_share(&latents, &configs),
         pushes_away_share: pushes_away_share(&latents, &configs),
+        locally_unstable_share: local.map(|(unstable, _)| unstable),
+        near_singular_share: local.map(|(_, singular)| singular),
         points: configs.len(),
     })
 }
@@ -480,6 +549,46 @@ mod tests {
         // Undefined across dimensions, or without a pair.
         assert_eq!(pushes_away_share(&[vec![0.0], vec![1.0]], &q[..2]), None);
         assert_eq!(pushes_away_share(&h[..1], &q[..1]), None);
+    }
+
+    #[test]
+    fn local_map_shares_find_unstable_and_nearly_singular_cells() {
+        // A 5x5 grid (`config_grid`'s order) has 9 interior cells.
+        let configs: Vec<Vec<f64>> = (0..25)
+            .map(|k| vec![(k % 5) as f64, (k / 5) as f64])
+            .collect();
+        let map = |f: &dyn Fn(f64, f64) -> [f64; 2]| -> Vec<Vec<f64>> {
+            configs.iter().map(|q| f(q[0], q[1]).to_vec()).collect()
+        };
+        // Linear maps: diag(2, 1) is fine everywhere; diag(1, 0.05) is nearly singular (0.05
+        // < 0.1) but stable; a 120-degree turn (trace 2 cos 120 < 0) and a mirror (det < 0)
+        // are unstable and not singular.
+        assert_eq!(
+            local_map_shares(&map(&|a, b| [2.0 * a, b]), &configs, 5),
+            Some((0.0, 0.0))
+        );
+        assert_eq!(
+            local_map_shares(&map(&|a, b| [a, 0.05 * b]), &configs, 5),
+            Some((0.0, 1.0))
+        );
+        let (c, s) = (120f64.to_radians().cos(), 120f64.to_radians().sin());
+        assert_eq!(
+            local_map_shares(&map(&|a, b| [c * a - s * b, s * a + c * b]), &configs, 5),
+            Some((1.0, 0.0))
+        );
+        assert_eq!(
+            local_map_shares(&map(&|a, b| [-a, b]), &configs, 5),
+            Some((1.0, 0.0))
+        );
+        // h_1 = (q_1 - 2)^2 / 2: dh_1/dq_1 by central differences is q_1 - 2, so the interior
+        // row q_1 = 1 has det < 0 and the row q_1 = 2 det 0 (unstable and singular): 6 of 9
+        // cells unstable, 3 singular.
+        let got = local_map_shares(&map(&|a, b| [a, (b - 2.0).powi(2) / 2.0]), &configs, 5);
+        assert_eq!(got, Some((6.0 / 9.0, 3.0 / 9.0)));
+        // Not 2-D, or too few points.
+        let three: Vec<Vec<f64>> = configs.iter().map(|q| vec![q[0], q[1], 0.0]).collect();
+        assert_eq!(local_map_shares(&three, &configs, 5), None);
+        assert_eq!(local_map_shares(&configs[..4], &configs[..4], 2), None);
     }
 
     #[test]
