@@ -143,6 +143,15 @@ pub struct LossConfig {
     /// curve in the plane, so the hook's tip gets a group of its own.
     #[serde(default)]
     pub action_response_grouping: ResponseGrouping,
+    /// What the sign term charges in each group's drive map `D_r`: the negative part of its
+    /// diagonal (`diagonal`), or the negative part of the smallest real part of its eigenvalues
+    /// (`eigenvalues`, 2-D actions only). Near a goal the loop `h'' = -B (Kp dh + Kd h')` holds
+    /// only where every eigenvalue of `B` has a positive real part; a positive diagonal does
+    /// not ensure it (a shear `[[1, 2], [2, 1]]` has the eigenvalue -1). Over 27 reacher runs
+    /// the share of grid cells whose local `dh/dq` fails it ranks their success with Spearman
+    /// -0.96 (`locally_unstable_share` in `diagnostics.json`; docs/method.md, reacher stop 30).
+    #[serde(default)]
+    pub action_response_sign_form: SignForm,
     /// Separation term: adds `separation_weight * mean_{i != j} relu(rho D_ij - d_ij)^2 /
     /// rho^2` over the batch's frames `i_t` (0: off, the paper), where `D_ij` is the squared
     /// distance between frames `i` and `j` (each averaged over 4x4 pixel blocks) over its batch
@@ -249,6 +258,17 @@ pub enum ResponseGrouping {
     /// k-means clusters of `h_t` (farthest-point start, Lloyd's iterations), each of at least
     /// the rows a fit needs.
     Clusters,
+}
+
+/// What the sign term charges (see [`LossConfig::action_response_sign_form`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SignForm {
+    /// `sum_i relu(-D[i, i])`: each latent coordinate moved backwards by its own action.
+    #[default]
+    Diagonal,
+    /// `relu(-min Re lambda(D))` of the 2x2 drive map: PD's loop unstable near a goal.
+    Eigenvalues,
 }
 
 /// The axes the variance floor holds (see [`LossConfig::variance_axes`]).
@@ -434,12 +454,13 @@ pub fn action_response_sign(
     h: Tensor<2>,
     regions: usize,
     grouping: ResponseGrouping,
+    form: SignForm,
 ) -> Tensor<1> {
     let device = x.device();
     let zero = || Tensor::zeros([1], &device);
     let [n, p] = x.dims();
     let [_, d] = a.dims();
-    if p < d || regions == 0 || n / regions < p + 2 {
+    if p < d || regions == 0 || n / regions < p + 2 || (form == SignForm::Eigenvalues && d != 2) {
         return zero();
     }
     // The drive block's diagonal: rows p - d + i, column i of B.
@@ -454,8 +475,14 @@ pub fn action_response_sign(
     let Some(whole) = least_squares_coefficients(a.clone(), x.clone()) else {
         return zero();
     };
-    let scale = crate::model::to_vec(whole.select(0, drive_rows).detach().powi_scalar(2).mean())[0]
-        .sqrt() as f64;
+    let scale = crate::model::to_vec(
+        whole
+            .select(0, drive_rows.clone())
+            .detach()
+            .powi_scalar(2)
+            .mean(),
+    )[0]
+    .sqrt() as f64;
     if !(scale.is_finite() && scale > 0.0) {
         return zero();
     }
@@ -470,11 +497,30 @@ pub fn action_response_sign(
             return zero();
         };
         total = total
-            + relu((local * diagonal_mask.clone()).neg())
-                .sum()
-                .reshape([1]);
+            + match form {
+                SignForm::Diagonal => relu((local * diagonal_mask.clone()).neg())
+                    .sum()
+                    .reshape([1]),
+                // On the map over the scale, so the square root's floor is scale-free.
+                SignForm::Eigenvalues => {
+                    relu(
+                        min_eigenvalue_real_part(local.select(0, drive_rows.clone()) / scale).neg(),
+                    ) * scale
+                }
+            };
     }
     total / (count as f64 * scale)
+}
+
+/// The smallest real part of the eigenvalues of the 2x2 map `m`, `[1]`: `tr/2 - sqrt(tr^2/4 -
+/// det)` where the eigenvalues are real, `tr/2` where they are a complex pair (the root's
+/// argument floored at 0, plus 1e-6 so its gradient stays finite at a double eigenvalue).
+fn min_eigenvalue_real_part(m: Tensor<2>) -> Tensor<1> {
+    let at = |i: usize, j: usize| m.clone().slice([i..i + 1, j..j + 1]).reshape([1]);
+    let half_trace = (at(0, 0) + at(1, 1)) / 2.0;
+    let det = at(0, 0) * at(1, 1) - at(0, 1) * at(1, 0);
+    let discriminant = half_trace.clone().powi_scalar(2) - det;
+    half_trace - relu(discriminant).add_scalar(1e-6).sqrt()
 }
 
 /// The separation term (see [`LossConfig::separation_weight`]) of the latents `h [n, du]`
@@ -805,6 +851,7 @@ impl Default for LossConfig {
             action_response_sign_weight: 0.0,
             action_response_regions: default_action_response_regions(),
             action_response_grouping: ResponseGrouping::PrincipalAxis,
+            action_response_sign_form: SignForm::Diagonal,
             separation_weight: 0.0,
             separation_ratio: default_separation_ratio(),
             decoder_weight: 0.0,
@@ -1270,6 +1317,7 @@ pub fn procl_loss(
                 h_now.clone(),
                 config.action_response_regions,
                 config.action_response_grouping,
+                config.action_response_sign_form,
             )
         } else {
             zero()
@@ -2014,6 +2062,7 @@ mod tests {
                 h,
                 regions,
                 ResponseGrouping::PrincipalAxis,
+                SignForm::Diagonal,
             ))
         };
         let want = 2.0 * 2f64.sqrt();
@@ -2032,8 +2081,14 @@ mod tests {
         // is -u_i / 2 per row, times 1 / (3 groups x the scale 1 / (3 sqrt 2)) = sqrt 2.
         let (h, u, a) = regional_responses([IDENTITY, IDENTITY, MINUS], (1.0, 0.0), &device);
         let a = a.require_grad();
-        let loss =
-            action_response_sign(a.clone(), u.clone(), h, 3, ResponseGrouping::PrincipalAxis);
+        let loss = action_response_sign(
+            a.clone(),
+            u.clone(),
+            h,
+            3,
+            ResponseGrouping::PrincipalAxis,
+            SignForm::Diagonal,
+        );
         let grads = loss.backward();
         let got = to_vec(a.grad(&grads).expect("gradient of a"));
         let u = to_vec(u);
@@ -2120,6 +2175,50 @@ mod tests {
     }
 
     #[test]
+    fn eigenvalue_sign_term_charges_a_shear_the_diagonal_form_misses() {
+        // B_g = I, I and the shear S = [[1, 2], [2, 1]] (eigenvalues 3 and -1, diagonal
+        // positive). The whole batch fits (2 I + S) / 3 = [[1, 2/3], [2/3, 1]], rms entry
+        // sqrt(26) / 6. The diagonal form charges nothing; the eigenvalue form charges the
+        // shear's -1, over 3 groups and the scale: 6 / (3 sqrt 26) = 2 / sqrt 26.
+        let device = cpu_device();
+        let shear = [[1.0f32, 2.0], [2.0, 1.0]];
+        let sign = |maps, form| {
+            let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
+            scalar(action_response_sign(
+                a,
+                u,
+                h,
+                3,
+                ResponseGrouping::PrincipalAxis,
+                form,
+            ))
+        };
+        assert!(sign([IDENTITY, IDENTITY, shear], SignForm::Diagonal).abs() < 1e-6);
+        let got = sign([IDENTITY, IDENTITY, shear], SignForm::Eigenvalues);
+        assert!((got - 2.0 / 26f64.sqrt()).abs() < 1e-4, "{got}");
+        // A turn by 60 degrees keeps both real parts at cos 60 > 0; one by 120 does not (cos
+        // 120 = -1/2 each): the diagonal form charges 2 x 1/2, the eigenvalue form 1/2 (and the
+        // root's floor, 1e-3 of the scale, over the 3 groups and the scale: 1/3000).
+        let turn = |deg: f32| {
+            let (c, s) = (deg.to_radians().cos(), deg.to_radians().sin());
+            [[c, s], [-s, c]]
+        };
+        assert!(sign([IDENTITY, turn(60.0), IDENTITY], SignForm::Eigenvalues).abs() < 1e-6);
+        let diagonal = sign([IDENTITY, turn(120.0), IDENTITY], SignForm::Diagonal);
+        let eigen = sign([IDENTITY, turn(120.0), IDENTITY], SignForm::Eigenvalues);
+        assert!(
+            (diagonal - 2.0 * (eigen - 1.0 / 3000.0)).abs() < 1e-4,
+            "{diagonal} vs {eigen}"
+        );
+        // The smallest real part itself: real eigenvalues 3 and -1; a complex pair 1 +- 2i.
+        let m = |v: [f32; 4]| t2(&v, 2, 2, &device);
+        let got = scalar(min_eigenvalue_real_part(m([1.0, 2.0, 2.0, 1.0])));
+        assert!((got + 1.0).abs() < 1e-5, "{got}");
+        let got = scalar(min_eigenvalue_real_part(m([1.0, -2.0, 2.0, 1.0])));
+        assert!((got - (1.0 - 1e-3)).abs() < 1e-5, "{got}");
+    }
+
+    #[test]
     fn sign_term_on_clusters_sees_the_hook_that_slices_average_away() {
         // The whole batch fits I / 3 (A and B give 4 I each to x^T a, C gives -4 I, over x^T x
         // = 12 I): its drive block's rms entry is 1 / (3 sqrt 2). Slices along the principal
@@ -2129,7 +2228,14 @@ mod tests {
         let device = cpu_device();
         let sign = |grouping| {
             let (h, u, a) = hooked_responses(&device);
-            scalar(action_response_sign(a, u, h, 3, grouping))
+            scalar(action_response_sign(
+                a,
+                u,
+                h,
+                3,
+                grouping,
+                SignForm::Diagonal,
+            ))
         };
         assert!(sign(ResponseGrouping::PrincipalAxis).abs() < 1e-5);
         let got = sign(ResponseGrouping::Clusters);

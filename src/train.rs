@@ -297,6 +297,13 @@ impl TrainConfig {
         if self.steps == 0 {
             return Err(Error::config("steps", "must be at least 1"));
         }
+        let du = self.env.make().action_dim();
+        if self.loss.action_response_sign_form == crate::losses::SignForm::Eigenvalues && du != 2 {
+            return Err(Error::config(
+                "loss.action_response_sign_form",
+                format!("eigenvalues needs 2-D actions; {} has {du}", self.env),
+            ));
+        }
         if !(0.0..1.0).contains(&self.orientation_margin) {
             return Err(Error::config(
                 "orientation_margin",
