@@ -426,6 +426,10 @@ pub struct Row {
     /// The share of latent-map pairs whose first PD torque pushes away from the goal
     /// ([`crate::eval::pushes_away_share`]).
     pub pushes_away_share: Option<f64>,
+    /// The share of latent-map cells whose local map PD cannot hold a goal with
+    /// ([`crate::eval::local_map_shares`]; 2-D configurations only).
+    #[serde(default)]
+    pub locally_unstable_share: Option<f64>,
     pub train_seconds: Option<f64>,
     /// Per-step distance to the goal (mean and std over episodes): the main figure's curve.
     #[serde(skip)]
@@ -501,6 +505,7 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                 linear_r2: diagnostics.as_ref().map(|d| d.linear_r2),
                 knn_r2: diagnostics.as_ref().map(|d| d.knn_r2),
                 pushes_away_share: diagnostics.as_ref().and_then(|d| d.pushes_away_share),
+                locally_unstable_share: diagnostics.as_ref().and_then(|d| d.locally_unstable_share),
                 train_seconds: training_seconds(&run),
                 curve: latent,
             });
@@ -517,6 +522,7 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                 linear_r2: None,
                 knn_r2: None,
                 pushes_away_share: None,
+                locally_unstable_share: None,
                 train_seconds: None,
                 curve: oracle,
             });
@@ -639,7 +645,7 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
     for results in &summary.envs {
         for row in &results.rows {
             table.push_str(&format!(
-                "<tr><td>{}</td><td>{}</td><td>{:.0}%</td><td>{:.4} &plusmn; {:.4} {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
+                "<tr><td>{}</td><td>{}</td><td>{:.0}%</td><td>{:.4} &plusmn; {:.4} {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
                 results.env,
                 row.method,
                 100.0 * row.success_rate,
@@ -651,13 +657,14 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
                 optional(row.linear_r2, 3),
                 optional(row.knn_r2, 3),
                 optional(row.pushes_away_share.map(|x| 100.0 * x), 1),
+                optional(row.locally_unstable_share.map(|x| 100.0 * x), 1),
                 optional(row.train_seconds, 0),
             ));
         }
     }
     body.push_str(&format!(
         "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset for the same number of steps.</p>\
-<table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>training (s)</th></tr>\n{table}</table>\n",
+<table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>locally unstable cells (%)</th><th>training (s)</th></tr>\n{table}</table>\n",
         config.eval_episodes
     ));
     for results in &summary.envs {

@@ -9,7 +9,7 @@ mod track;
 
 pub use latent_map::{
     LatentDiagnostics, config_grid, encode_configs, latent_diagnostics, linear_fit,
-    pushes_away_share,
+    local_map_shares, pushes_away_share,
 };
 pub use plots::{
     register_font, save_episode_gif, save_latent_plot, save_reach_plot, save_track_plot,

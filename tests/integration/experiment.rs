@@ -55,6 +55,12 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
                 row.pushes_away_share
                     .is_some_and(|x| (0.0..=1.0).contains(&x))
             );
+            // The local maps are read on the 2-D configurations' grid only.
+            let local = row.locally_unstable_share;
+            match results.env {
+                EnvKind::Fetch => assert_eq!(local, None),
+                _ => assert!(local.is_some_and(|x| (0.0..=1.0).contains(&x))),
+            }
             let run = out.join(row.run.as_ref().unwrap());
             for file in ["latent_traj.png", "latent_map.png", "eval.json"] {
                 assert!(run.join(file).exists(), "{}", run.join(file).display());
