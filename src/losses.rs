@@ -446,8 +446,9 @@ fn least_squares_coefficients(a: Tensor<2>, x: Tensor<2>) -> Option<Tensor<2>> {
 /// The sign term (see [`LossConfig::action_response_sign_weight`]) of the response `a [n, d]`
 /// on the regressors `x [n, p]`, whose last `d` columns are the drive: the mean over the groups
 /// of `h [n, d]` that `grouping` makes (`regions` of them, fewer where clusters were too small to
-/// fit) of `sum_i relu(-D_r[i, i]) / s`. 0 when `x` has fewer than `d` columns, the batch has too
-/// few rows per group to fit (`p + 2`), or a fit is degenerate.
+/// fit) of the charge `form` names, `sum_i relu(-D_r[i, i]) / s` or `relu(-min Re lambda(D_r /
+/// s))`. 0 when `x` has fewer than `d` columns, the batch has too few rows per group to fit (`p +
+/// 2`), a fit is degenerate, or `form` is the eigenvalues' and `d != 2`.
 pub fn action_response_sign(
     a: Tensor<2>,
     x: Tensor<2>,
