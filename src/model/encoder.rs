@@ -986,10 +986,11 @@ mod tests {
                 let column: Vec<f64> = h.iter().skip(dim).step_by(2).map(|&x| x as f64).collect();
                 let mean = column.iter().sum::<f64>() / 24.0;
                 let std = (column.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / 24.0).sqrt();
-                // The relative head's keypoint angles leave the rescaled output an f32 rounding
-                // of about 1.2e-4 off zero; the other heads stay within 1e-4.
-                let tolerance = if relative_angles { 1e-3 } else { 1e-4 };
-                assert!(mean.abs() < tolerance, "{head:?} dim {dim}: mean {mean}");
+                // Standardising subtracts a mean much larger than the spread in f32, so the
+                // rescaled output keeps a rounding that depends on the CPU's SIMD kernels (1.3e-4
+                // for the polar tanh head on an AMD EPYC, under 1e-4 on earlier CI machines):
+                // 1e-3 is 0.04% of the std, far below the O(1) mean of an unstandardised head.
+                assert!(mean.abs() < 1e-3, "{head:?} dim {dim}: mean {mean}");
                 assert!((std - 2.5).abs() < 1e-3, "{head:?} dim {dim}: std {std}");
             }
         }
