@@ -12,7 +12,10 @@ Reads an eval.json written by `procl eval` (it needs the per-episode `goal_confi
   - where the eval.json has them (since stop 25), by the latent: whether the arm still moved
     (joint speed > 0.05 rad/s after the last step), and how far its last latent was from the
     goal's as a share of the first's (< 1%: PD had reached h*, so the latent folds two
-    configurations onto one h).
+    configurations onto one h), and how many end in a valley: the last latent less than 0.02
+    units from h* per radian of remaining joint error (docs/method.md, reacher stop 30);
+  - the failures' remaining joint error (0.1-0.3 rad: near misses, or further), and the goals
+    with the wrist under 0.6 rad (the straight wrist, where seed 2 of stop 30 stopped short).
 Standard library only:
   python3 tools/reach_failures.py runs/R/eval.json
 """
@@ -23,6 +26,10 @@ import sys
 
 LIMIT = math.radians(160)
 NEAR_LIMIT = math.radians(5)
+STRAIGHT_WRIST = 0.6
+# A failure ends in a valley when its last latent is this close to h* per radian of joint error
+# left (the reacher's latent moves 1-2 units per radian of shoulder).
+VALLEY_SLOPE = 0.02
 
 
 def main():
@@ -65,6 +72,13 @@ def main():
             stop = by_stop.setdefault(" + ".join(at) or "free space", [0, 0])
             stop[0] += 1
             stop[1] += distance > 0.3
+    failures = [d for d in method["final_distances"] if d >= threshold]
+    near = sum(d < 0.3 for d in failures)
+    print(f"failures 0.1-0.3 rad from the goal: {near}, further: {len(failures) - near}")
+    straight = [d for d, goal in zip(method["final_distances"], method["goal_configs"])
+                if goal[1] < STRAIGHT_WRIST]
+    reached = sum(d < threshold for d in straight)
+    print(f"goals with the wrist under {STRAIGHT_WRIST} rad: {reached} of {len(straight)} reached")
     print(f"{method['method']}: success {method['success_rate']:.1%} of {len(method['final_distances'])}")
     for name, table in [("goal", by_goal), ("goal shoulder", by_shoulder)]:
         print(f"failed by {name}:")
@@ -82,14 +96,17 @@ def print_latent_gaps(method, threshold):
     if not all(method.get(c) for c in columns):
         return
     rows = []
-    for distance, qd, goal, start, final in zip(
-        method["final_distances"], *(method[c] for c in columns)
+    valleys = 0
+    for distance, q_goal, q_final, qd, goal, start, final in zip(
+        method["final_distances"], method["goal_configs"], method["final_configs"],
+        *(method[c] for c in columns)
     ):
         if distance < threshold:
             continue
         gap = math.dist(final, goal) / max(math.dist(start, goal), 1e-12)
         speed = math.hypot(*qd)
         rows.append((gap, speed))
+        valleys += math.dist(final, goal) < VALLEY_SLOPE * math.dist(q_final, q_goal)
     if not rows:
         return
     moving = sum(speed > 0.05 for _, speed in rows)
@@ -98,6 +115,7 @@ def print_latent_gaps(method, threshold):
     for low, high in [(0, 0.01), (0.01, 0.2), (0.2, math.inf)]:
         n = sum(low <= gap < high for gap, _ in rows)
         print(f"  {low:.0%}..{'' if high == math.inf else f'{high:.0%}'}: {n}")
+    print(f"failures in a valley (|h - h*| < {VALLEY_SLOPE} |q - q*|): {valleys} of {len(rows)}")
 
 
 if __name__ == "__main__":
