@@ -309,6 +309,12 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         expected,
         cell("stop30_preset_action_response_grouping=clusters")
     );
+    // Both together (later in stop 30).
+    expected.loss.variance_axes = procl::losses::VarianceAxes::Principal;
+    assert_eq!(
+        expected,
+        cell("stop30_preset_variance_axes=principal_grouping=clusters")
+    );
     // Stops 22-29's preset is the same without the sign term's four fields.
     let mut preset = sign_preset.clone();
     preset.loss.action_response_sign_weight = 0.0;
