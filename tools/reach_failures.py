@@ -72,14 +72,15 @@ def main():
             stop = by_stop.setdefault(" + ".join(at) or "free space", [0, 0])
             stop[0] += 1
             stop[1] += distance > 0.3
-    failures = [d for d in method["final_distances"] if d >= threshold]
-    near = sum(d < 0.3 for d in failures)
-    print(f"failures 0.1-0.3 rad from the goal: {near}, further: {len(failures) - near}")
+    print(f"{method['method']}: success {method['success_rate']:.1%} of {len(method['final_distances'])}")
+    # by_stop's second column already counts the failures past 0.3 rad.
+    failed = sum(n for n, _ in by_stop.values())
+    further = sum(far for _, far in by_stop.values())
+    print(f"failures {threshold}-0.3 rad from the goal: {failed - further}, further: {further}")
     straight = [d for d, goal in zip(method["final_distances"], method["goal_configs"])
                 if goal[1] < STRAIGHT_WRIST]
     reached = sum(d < threshold for d in straight)
     print(f"goals with the wrist under {STRAIGHT_WRIST} rad: {reached} of {len(straight)} reached")
-    print(f"{method['method']}: success {method['success_rate']:.1%} of {len(method['final_distances'])}")
     for name, table in [("goal", by_goal), ("goal shoulder", by_shoulder)]:
         print(f"failed by {name}:")
         for key, (failed, total) in table.items():
