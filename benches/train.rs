@@ -11,6 +11,8 @@ use procl::model::cpu_device;
 use procl::train::{Method, Preset, TrainConfig, loss_inputs};
 
 fn train_step(c: &mut Criterion) {
+    // As the binary does at start (src/allocator.rs), so the figure is the one users get.
+    procl::allocator::retain_freed_memory();
     let env = EnvKind::PointMass;
     let data = collect(
         &CollectConfig {

@@ -8,6 +8,7 @@ mod fsutil;
 mod image_io;
 
 pub mod ablate;
+pub mod allocator;
 mod checkpoint;
 pub mod control;
 pub mod data;

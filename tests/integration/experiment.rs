@@ -12,6 +12,7 @@ fn run(
     config: &ExperimentConfig,
     report_only: bool,
 ) -> (procl::experiment::Summary, Vec<(String, Outcome)>) {
+    procl::allocator::retain_freed_memory();
     let mut finished = vec![];
     let summary = run_experiment(config, report_only, &mut |event| {
         if let Event::Finish(name, outcome, _) = event {

@@ -9,6 +9,7 @@ use procl::train::{Method, Preset, RunPaths, TrainConfig, train};
 
 /// Trains `config` on `data` into `dir` (continuing it with `resume`), which must succeed.
 pub fn train_into(config: &TrainConfig, data: &Dataset, dir: &Path, resume: bool) {
+    procl::allocator::retain_freed_memory();
     train(
         config,
         data,
@@ -22,6 +23,7 @@ pub fn train_into(config: &TrainConfig, data: &Dataset, dir: &Path, resume: bool
 
 /// Trains `config` on `data` into `dir`, which must fail; the error's message.
 pub fn train_error(config: &TrainConfig, data: &Dataset, dir: &Path, resume: bool) -> String {
+    procl::allocator::retain_freed_memory();
     train(
         config,
         data,
@@ -43,6 +45,7 @@ pub fn tiny_procl_run(
     (transitions, episode_len): (usize, usize),
     (steps, batch_size, search_every): (u64, usize, u64),
 ) -> RunPaths {
+    procl::allocator::retain_freed_memory();
     let data = collect(
         &CollectConfig {
             transitions,
