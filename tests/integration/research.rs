@@ -315,6 +315,13 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         expected,
         cell("stop30_preset_variance_axes=principal_grouping=clusters")
     );
+    // Stop 31: the sign term's eigenvalue form alone.
+    let mut expected = sign_preset.clone();
+    expected.loss.action_response_sign_form = procl::losses::SignForm::Eigenvalues;
+    assert_eq!(
+        expected,
+        cell("stop31_preset_action_response_sign_form=eigenvalues")
+    );
     // Stops 22-29's preset is the same without the sign term's four fields.
     let mut preset = sign_preset.clone();
     preset.loss.action_response_sign_weight = 0.0;
