@@ -322,6 +322,10 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         expected,
         cell("stop31_preset_action_response_sign_form=eigenvalues")
     );
+    // Stop 31, next: twelve groups.
+    let mut expected = sign_preset.clone();
+    expected.loss.action_response_regions = 12;
+    assert_eq!(expected, cell("stop31_preset_action_response_regions=12"));
     // Stops 22-29's preset is the same without the sign term's four fields.
     let mut preset = sign_preset.clone();
     preset.loss.action_response_sign_weight = 0.0;
