@@ -14,8 +14,9 @@
 pub const RETAINED_BLOCK_BYTES: i32 = 1 << 30;
 
 /// Make glibc keep freed memory in the heap for reuse (see the module docs). It changes
-/// allocator behaviour for the whole process, so the binary (and the test harness) call it once
-/// at start, never the training code itself. Returns whether the allocator took both settings;
+/// allocator behaviour for the whole process, so the binary calls it at start and the test
+/// helpers before their training runs (it is idempotent), never the training code itself.
+/// Returns whether the allocator took both settings;
 /// on targets other than Linux with glibc it does nothing and returns `false`.
 pub fn retain_freed_memory() -> bool {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
