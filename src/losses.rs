@@ -152,6 +152,19 @@ pub struct LossConfig {
     /// -0.96 (`locally_unstable_share` in `diagnostics.json`; docs/method.md, reacher stop 30).
     #[serde(default)]
     pub action_response_sign_form: SignForm,
+    /// Singular-value floor of the sign term: each group's charge also gets `relu(rho -
+    /// sigma_min(D_r) / s)`, `rho` this value (0: off, the paper and the preset). The sign term
+    /// asks each coordinate to move forwards under its own action, not to move by much: on the
+    /// reacher's seed 2 its failures end in a valley where the latent reached the goal's and the
+    /// wrist is 0.1-0.6 rad off, with the wrist's column of `dh/dq` a third of the shoulder's or
+    /// less, and twelve groups left 93% of the grid's local maps near-singular (docs/method.md,
+    /// reacher stop 31). PD on `h` moves a joint only as far as its action moves `h`, so a
+    /// direction the action barely moves is one PD cannot resolve. The global floor on the
+    /// principal axes asked for the same spread over the whole batch and bent the band
+    /// (stops 24, 30); this asks for it in each group. `sigma_min` comes from the host's SVD of
+    /// the group's map, its singular vectors held fixed (its exact gradient where it is simple).
+    #[serde(default)]
+    pub action_response_singular_floor: f64,
     /// Separation term: adds `separation_weight * mean_{i != j} relu(rho D_ij - d_ij)^2 /
     /// rho^2` over the batch's frames `i_t` (0: off, the paper), where `D_ij` is the squared
     /// distance between frames `i` and `j` (each averaged over 4x4 pixel blocks) over its batch
@@ -447,8 +460,10 @@ fn least_squares_coefficients(a: Tensor<2>, x: Tensor<2>) -> Option<Tensor<2>> {
 /// on the regressors `x [n, p]`, whose last `d` columns are the drive: the mean over the groups
 /// of `h [n, d]` that `grouping` makes (`regions` of them, fewer where clusters were too small to
 /// fit) of the charge `form` names, `sum_i relu(-D_r[i, i]) / s` or `relu(-min Re lambda(D_r /
-/// s))`. 0 when `x` has fewer than `d` columns, the batch has too few rows per group to fit (`p +
-/// 2`), a fit is degenerate, or `form` is the eigenvalues' and `d != 2`.
+/// s))`, plus `relu(singular_floor - sigma_min(D_r) / s)` where `singular_floor > 0` (see
+/// [`LossConfig::action_response_singular_floor`]). 0 when `x` has fewer than `d` columns, the
+/// batch has too few rows per group to fit (`p + 2`), a fit is degenerate, or `form` is the
+/// eigenvalues' and `d != 2`.
 pub fn action_response_sign(
     a: Tensor<2>,
     x: Tensor<2>,
@@ -456,6 +471,7 @@ pub fn action_response_sign(
     regions: usize,
     grouping: ResponseGrouping,
     form: SignForm,
+    singular_floor: f64,
 ) -> Tensor<1> {
     let device = x.device();
     let zero = || Tensor::zeros([1], &device);
@@ -497,6 +513,7 @@ pub fn action_response_sign(
         ) else {
             return zero();
         };
+        let drive = local.clone().select(0, drive_rows.clone());
         total = total
             + match form {
                 SignForm::Diagonal => relu((local * diagonal_mask.clone()).neg())
@@ -504,13 +521,41 @@ pub fn action_response_sign(
                     .reshape([1]),
                 // On the map over the scale, so the square root's floor is scale-free.
                 SignForm::Eigenvalues => {
-                    relu(
-                        min_eigenvalue_real_part(local.select(0, drive_rows.clone()) / scale).neg(),
-                    ) * scale
+                    relu(min_eigenvalue_real_part(drive.clone() / scale).neg()) * scale
                 }
             };
+        if singular_floor > 0.0 {
+            // In the scale's units, like the diagonal: `relu(rho s - sigma_min)`.
+            total = total
+                + relu(
+                    smallest_singular_value(drive)
+                        .neg()
+                        .add_scalar(singular_floor * scale),
+                );
+        }
     }
     total / (count as f64 * scale)
+}
+
+/// The smallest singular value of the square map `m [d, d]`, `[1]`, as `u^T m v` with the
+/// singular vectors `u`, `v` of the host's SVD (f64, nalgebra) held fixed: its value, and its
+/// exact gradient `u v^T` wherever the smallest singular value is simple. 0 (no gradient) when
+/// the SVD fails.
+fn smallest_singular_value(m: Tensor<2>) -> Tensor<1> {
+    let device = m.device();
+    let host = host_matrix(m.clone());
+    let svd = nalgebra::linalg::SVD::new(host, true, true);
+    let smallest = svd
+        .singular_values
+        .iter()
+        .enumerate()
+        .min_by(|(_, x), (_, y)| x.total_cmp(y))
+        .map(|(i, _)| i);
+    let (Some(i), Some(u), Some(v_t)) = (smallest, svd.u, svd.v_t) else {
+        return Tensor::zeros([1], &device);
+    };
+    let outer = u.column(i) * v_t.row(i);
+    (m * device_matrix(&outer, &device)).sum().reshape([1])
 }
 
 /// The smallest real part of the eigenvalues of the 2x2 map `m`, `[1]`: `tr/2 - sqrt(tr^2/4 -
@@ -853,6 +898,7 @@ impl Default for LossConfig {
             action_response_regions: default_action_response_regions(),
             action_response_grouping: ResponseGrouping::PrincipalAxis,
             action_response_sign_form: SignForm::Diagonal,
+            action_response_singular_floor: 0.0,
             separation_weight: 0.0,
             separation_ratio: default_separation_ratio(),
             decoder_weight: 0.0,
@@ -908,6 +954,10 @@ impl LossConfig {
             (
                 "loss.action_response_sign_weight",
                 self.action_response_sign_weight,
+            ),
+            (
+                "loss.action_response_singular_floor",
+                self.action_response_singular_floor,
             ),
             ("loss.separation_weight", self.separation_weight),
             ("loss.decoder_weight", self.decoder_weight),
@@ -1319,6 +1369,7 @@ pub fn procl_loss(
                 config.action_response_regions,
                 config.action_response_grouping,
                 config.action_response_sign_form,
+                config.action_response_singular_floor,
             )
         } else {
             zero()
@@ -2064,6 +2115,7 @@ mod tests {
                 regions,
                 ResponseGrouping::PrincipalAxis,
                 SignForm::Diagonal,
+                0.0,
             ))
         };
         let want = 2.0 * 2f64.sqrt();
@@ -2080,7 +2132,28 @@ mod tests {
         // The gradient reaches only the backwards group's responses (rows 8-11 before the
         // shuffle), pushing each along its own action: d/da of -B_ii with B = (x^T x)^-1 x^T a
         // is -u_i / 2 per row, times 1 / (3 groups x the scale 1 / (3 sqrt 2)) = sqrt 2.
-        let (h, u, a) = regional_responses([IDENTITY, IDENTITY, MINUS], (1.0, 0.0), &device);
+        for (row, u, grad) in sign_gradient([IDENTITY, IDENTITY, MINUS], 0.0) {
+            for i in 0..2 {
+                let want = if row >= 8 {
+                    -f64::from(u[i]) / 2.0 * 2f64.sqrt()
+                } else {
+                    0.0
+                };
+                assert!((grad[i] - want).abs() < 1e-4, "row {row}, dim {i}");
+            }
+        }
+    }
+
+    /// The sign term's gradient with respect to the response `a` of [`regional_responses`]
+    /// (unturned, three groups along the principal axis, the diagonal form plus
+    /// `singular_floor`): for each row, its index before the shuffle, its action and its
+    /// gradient.
+    fn sign_gradient(
+        maps: [[[f32; 2]; 2]; 3],
+        singular_floor: f64,
+    ) -> Vec<(usize, [f32; 2], [f64; 2])> {
+        let device = cpu_device().autodiff();
+        let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
         let a = a.require_grad();
         let loss = action_response_sign(
             a.clone(),
@@ -2089,24 +2162,20 @@ mod tests {
             3,
             ResponseGrouping::PrincipalAxis,
             SignForm::Diagonal,
+            singular_floor,
         );
         let grads = loss.backward();
         let got = to_vec(a.grad(&grads).expect("gradient of a"));
         let u = to_vec(u);
         let shuffle = [5usize, 0, 11, 3, 8, 1, 10, 6, 2, 9, 4, 7];
-        for (k, &row) in shuffle.iter().enumerate() {
-            for i in 0..2 {
-                let want = if row >= 8 {
-                    -f64::from(u[2 * k + i]) / 2.0 * 2f64.sqrt()
-                } else {
-                    0.0
-                };
-                assert!(
-                    (f64::from(got[2 * k + i]) - want).abs() < 1e-4,
-                    "row {row}, dim {i}"
-                );
-            }
-        }
+        shuffle
+            .iter()
+            .enumerate()
+            .map(|(k, &row)| {
+                let grad = [f64::from(got[2 * k]), f64::from(got[2 * k + 1])];
+                (row, [u[2 * k], u[2 * k + 1]], grad)
+            })
+            .collect()
     }
 
     /// A latent that hooks back (24 rows): an arm `A` of 8 points along `y = 0` near the
@@ -2192,6 +2261,7 @@ mod tests {
                 3,
                 ResponseGrouping::PrincipalAxis,
                 form,
+                0.0,
             ))
         };
         assert!(sign([IDENTITY, IDENTITY, shear], SignForm::Diagonal).abs() < 1e-6);
@@ -2220,6 +2290,57 @@ mod tests {
     }
 
     #[test]
+    fn singular_floor_charges_a_group_whose_map_squashes_a_direction() {
+        // B_g = I, I and W = diag(1, 0.1) (a faint wrist; the diagonal is positive, so the sign
+        // term alone charges nothing). The whole batch fits diag(1, 0.7), rms entry s =
+        // sqrt(1.49) / 2. With rho = 0.5 only W is under the floor: (rho s - 0.1) over 3 groups
+        // and the scale, (0.5 - 0.1 / s) / 3.
+        let device = cpu_device().autodiff();
+        let faint = [[1.0f32, 0.0], [0.0, 0.1]];
+        let sign = |maps, turn, floor| {
+            let (h, u, a) = regional_responses(maps, turn, &device);
+            scalar(action_response_sign(
+                a,
+                u,
+                h,
+                3,
+                ResponseGrouping::PrincipalAxis,
+                SignForm::Diagonal,
+                floor,
+            ))
+        };
+        let scale = 1.49f64.sqrt() / 2.0;
+        let want = (0.5 - 0.1 / scale) / 3.0;
+        assert_eq!(sign([IDENTITY, IDENTITY, faint], (1.0, 0.0), 0.0), 0.0);
+        let got = sign([IDENTITY, IDENTITY, faint], (1.0, 0.0), 0.5);
+        assert!((got - want).abs() < 1e-4, "{got} vs {want}");
+        // Singular values do not see the latent's rotation (here by (0.6, 0.8)), which the
+        // diagonal does.
+        let got = sign([IDENTITY, IDENTITY, faint], (0.6, 0.8), 0.5);
+        assert!((got - want).abs() < 1e-4, "{got} vs {want}");
+        // A map turned by 60 degrees keeps both singular values at 1: nothing to charge.
+        let (c, s) = (60f32.to_radians().cos(), 60f32.to_radians().sin());
+        let turned = [[c, s], [-s, c]];
+        assert!(sign([IDENTITY, turned, IDENTITY], (1.0, 0.0), 0.5).abs() < 1e-6);
+        // The gradient reaches only the faint group's rows (8-11 before the shuffle), and only
+        // along the wrist: d sigma_min / dB = e_1 e_1^T, so d/da_1 is -u_1 / 2 per row over 3
+        // groups and the scale, and the shoulder's response a_0 gets nothing.
+        for (row, u, grad) in sign_gradient([IDENTITY, IDENTITY, faint], 0.5) {
+            let want_wrist = if row >= 8 {
+                -f64::from(u[1]) / 2.0 / (3.0 * scale)
+            } else {
+                0.0
+            };
+            assert!(grad[0].abs() < 1e-5, "row {row}: {}", grad[0]);
+            assert!(
+                (grad[1] - want_wrist).abs() < 1e-4,
+                "row {row}: {} vs {want_wrist}",
+                grad[1]
+            );
+        }
+    }
+
+    #[test]
     fn sign_term_on_clusters_sees_the_hook_that_slices_average_away() {
         // The whole batch fits I / 3 (A and B give 4 I each to x^T a, C gives -4 I, over x^T x
         // = 12 I): its drive block's rms entry is 1 / (3 sqrt 2). Slices along the principal
@@ -2236,6 +2357,7 @@ mod tests {
                 3,
                 grouping,
                 SignForm::Diagonal,
+                0.0,
             ))
         };
         assert!(sign(ResponseGrouping::PrincipalAxis).abs() < 1e-5);

@@ -326,6 +326,13 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut expected = sign_preset.clone();
     expected.loss.action_response_regions = 12;
     assert_eq!(expected, cell("stop31_preset_action_response_regions=12"));
+    // Stop 32: the singular-value floor in each group.
+    let mut expected = sign_preset.clone();
+    expected.loss.action_response_singular_floor = 0.25;
+    assert_eq!(
+        expected,
+        cell("stop32_preset_action_response_singular_floor=0.25")
+    );
     // Stops 22-29's preset is the same without the sign term's four fields.
     let mut preset = sign_preset.clone();
     preset.loss.action_response_sign_weight = 0.0;
