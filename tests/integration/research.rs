@@ -293,8 +293,16 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let stop22_design = cell(
         "stop21_preset_pairwise_angles_pairwise_init_scale=0_cut_fade=15_trunk_second_stride=1",
     );
-    let mut sign_preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-    sign_preset.steps = 1200;
+    // The preset since stop 32: the sign term with its singular-value floor.
+    let mut preset = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+    preset.steps = 1200;
+    assert_eq!(
+        preset,
+        cell("stop32_preset_action_response_singular_floor=0.25")
+    );
+    // Stops 30-31's preset: the sign term alone.
+    let mut sign_preset = preset;
+    sign_preset.loss.action_response_singular_floor = 0.0;
     assert_eq!(
         sign_preset,
         cell("stop29_preset_action_response_sign_weight=3_k=5_velocity_regions=6")
@@ -326,13 +334,6 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
     let mut expected = sign_preset.clone();
     expected.loss.action_response_regions = 12;
     assert_eq!(expected, cell("stop31_preset_action_response_regions=12"));
-    // Stop 32: the singular-value floor in each group.
-    let mut expected = sign_preset.clone();
-    expected.loss.action_response_singular_floor = 0.25;
-    assert_eq!(
-        expected,
-        cell("stop32_preset_action_response_singular_floor=0.25")
-    );
     // Stops 22-29's preset is the same without the sign term's four fields.
     let mut preset = sign_preset.clone();
     preset.loss.action_response_sign_weight = 0.0;
