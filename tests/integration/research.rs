@@ -300,6 +300,13 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         preset,
         cell("stop32_preset_action_response_singular_floor=0.25")
     );
+    // Stop 32's next experiment: the preset with cluster groups.
+    let mut expected = preset.clone();
+    expected.loss.action_response_grouping = procl::losses::ResponseGrouping::Clusters;
+    assert_eq!(
+        expected,
+        cell("stop32_preset_action_response_grouping=clusters")
+    );
     // Stops 30-31's preset: the sign term alone.
     let mut sign_preset = preset;
     sign_preset.loss.action_response_singular_floor = 0.0;
