@@ -513,22 +513,23 @@ pub fn action_response_sign(
         ) else {
             return zero();
         };
-        let drive = local.clone().select(0, drive_rows.clone());
+        // The drive block, selected only where a charge reads it.
+        let drive = || local.clone().select(0, drive_rows.clone());
         total = total
             + match form {
-                SignForm::Diagonal => relu((local * diagonal_mask.clone()).neg())
+                SignForm::Diagonal => relu((local.clone() * diagonal_mask.clone()).neg())
                     .sum()
                     .reshape([1]),
                 // On the map over the scale, so the square root's floor is scale-free.
                 SignForm::Eigenvalues => {
-                    relu(min_eigenvalue_real_part(drive.clone() / scale).neg()) * scale
+                    relu(min_eigenvalue_real_part(drive() / scale).neg()) * scale
                 }
             };
         if singular_floor > 0.0 {
             // In the scale's units, like the diagonal: `relu(rho s - sigma_min)`.
             total = total
                 + relu(
-                    smallest_singular_value(drive)
+                    smallest_singular_value(drive())
                         .neg()
                         .add_scalar(singular_floor * scale),
                 );

@@ -4,7 +4,9 @@
 use burn::tensor::{Tensor, TensorData};
 use procl::data::{CollectConfig, Dataset, collect};
 use procl::envs::EnvKind;
-use procl::losses::{LossConfig, LossInputs, NoiseMode, procl_loss};
+use procl::losses::{
+    LossConfig, LossInputs, NoiseMode, ResponseGrouping, SignForm, VarianceAxes, procl_loss,
+};
 use procl::model::{DynamicsConfig, cpu_device, to_vec};
 use procl::train::{Method, Preset, TrainConfig};
 use rand::seq::SliceRandom;
@@ -300,12 +302,17 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         preset,
         cell("stop32_preset_action_response_singular_floor=0.25")
     );
-    // Stop 32's next experiment: the preset with cluster groups.
-    let mut expected = preset.clone();
-    expected.loss.action_response_grouping = procl::losses::ResponseGrouping::Clusters;
-    assert_eq!(
-        expected,
-        cell("stop32_preset_action_response_grouping=clusters")
+    // A variant cell is its base configuration with one change.
+    let assert_variant = |base: &TrainConfig, change: &dyn Fn(&mut TrainConfig), name: &str| {
+        let mut expected = base.clone();
+        change(&mut expected);
+        assert_eq!(expected, cell(name), "{name}");
+    };
+    // Stop 32's cluster groups on the new preset.
+    assert_variant(
+        &preset,
+        &|c| c.loss.action_response_grouping = ResponseGrouping::Clusters,
+        "stop32_preset_action_response_grouping=clusters",
     );
     // Stops 30-31's preset: the sign term alone.
     let mut sign_preset = preset;
@@ -314,33 +321,37 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         sign_preset,
         cell("stop29_preset_action_response_sign_weight=3_k=5_velocity_regions=6")
     );
-    // Stop 30's variants of the preset: the floor on the principal axes, the groups as clusters.
-    let mut expected = sign_preset.clone();
-    expected.loss.variance_axes = procl::losses::VarianceAxes::Principal;
-    assert_eq!(expected, cell("stop30_preset_variance_axes=principal"));
-    let mut expected = sign_preset.clone();
-    expected.loss.action_response_grouping = procl::losses::ResponseGrouping::Clusters;
-    assert_eq!(
-        expected,
-        cell("stop30_preset_action_response_grouping=clusters")
+    // Stop 30's variants of the preset: the floor on the principal axes, the groups as
+    // clusters, and both together (later in stop 30).
+    assert_variant(
+        &sign_preset,
+        &|c| c.loss.variance_axes = VarianceAxes::Principal,
+        "stop30_preset_variance_axes=principal",
     );
-    // Both together (later in stop 30).
-    expected.loss.variance_axes = procl::losses::VarianceAxes::Principal;
-    assert_eq!(
-        expected,
-        cell("stop30_preset_variance_axes=principal_grouping=clusters")
+    assert_variant(
+        &sign_preset,
+        &|c| c.loss.action_response_grouping = ResponseGrouping::Clusters,
+        "stop30_preset_action_response_grouping=clusters",
     );
-    // Stop 31: the sign term's eigenvalue form alone.
-    let mut expected = sign_preset.clone();
-    expected.loss.action_response_sign_form = procl::losses::SignForm::Eigenvalues;
-    assert_eq!(
-        expected,
-        cell("stop31_preset_action_response_sign_form=eigenvalues")
+    assert_variant(
+        &sign_preset,
+        &|c| {
+            c.loss.action_response_grouping = ResponseGrouping::Clusters;
+            c.loss.variance_axes = VarianceAxes::Principal;
+        },
+        "stop30_preset_variance_axes=principal_grouping=clusters",
     );
-    // Stop 31, next: twelve groups.
-    let mut expected = sign_preset.clone();
-    expected.loss.action_response_regions = 12;
-    assert_eq!(expected, cell("stop31_preset_action_response_regions=12"));
+    // Stop 31: the sign term's eigenvalue form alone, and twelve groups.
+    assert_variant(
+        &sign_preset,
+        &|c| c.loss.action_response_sign_form = SignForm::Eigenvalues,
+        "stop31_preset_action_response_sign_form=eigenvalues",
+    );
+    assert_variant(
+        &sign_preset,
+        &|c| c.loss.action_response_regions = 12,
+        "stop31_preset_action_response_regions=12",
+    );
     // Stops 22-29's preset is the same without the sign term's four fields.
     let mut preset = sign_preset.clone();
     preset.loss.action_response_sign_weight = 0.0;
@@ -387,7 +398,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         cell("stop24_preset_action_response_turn_weight=3_k=10_velocity")
     );
     let mut separated = expected.clone();
-    expected.loss.variance_axes = procl::losses::VarianceAxes::Principal;
+    expected.loss.variance_axes = VarianceAxes::Principal;
     assert_eq!(
         expected,
         cell("stop24_preset_action_response_turn_weight=3_k=10_velocity_variance_axes=principal")
@@ -486,7 +497,7 @@ fn shipped_ablation_grids_resolve_for_their_envs() {
         c.orientation_tolerance = 0.8
     });
     preset_plus("stop16_preset_variance_axes=principal", &|c| {
-        c.loss.variance_axes = procl::losses::VarianceAxes::Principal
+        c.loss.variance_axes = VarianceAxes::Principal
     });
     preset_plus("stop16_preset_batch_group=8x8", &|c| {
         (c.batch_group_size, c.batch_group_window) = (8, 8)
