@@ -326,7 +326,6 @@ impl OrientationSearch {
                 loss.q_h,
                 loss.q_v,
                 loss.lyapunov_dt_s.unwrap_or(dt),
-                loss.normalise_risk,
             );
             self.sums[k] += crate::model::to_vec(risk)
                 .first()

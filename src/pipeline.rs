@@ -89,9 +89,7 @@ pub fn shrink_networks(config: &mut TrainConfig) {
         keypoints: 4,
         hidden: 0,
         polar: false,
-        with_cartesian: false,
         pairwise_angles: false,
-        linear_base: false,
     };
     if let Some(nvae) = config.nvae.as_mut() {
         nvae.trunk_channels = [8, 8];

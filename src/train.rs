@@ -16,7 +16,7 @@ use crate::data::Dataset;
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::losses::{LOSS_NAMES, LossConfig, LossInputs, LossValues, NoiseMode, procl_loss};
-use crate::model::{DynamicsInput, EncoderHead, ModelConfig, ProclModel, frames_to_tensor};
+use crate::model::{EncoderHead, ModelConfig, ProclModel, frames_to_tensor};
 use crate::nvae::{NvaeConfig, NvaeModel, NvaeObjective};
 use crate::orientation::{LatentOrienter, OrientationCriterion, WindowRule};
 
@@ -68,13 +68,13 @@ impl std::str::FromStr for Method {
     }
 }
 
-/// Named starting points for a configuration (issue 9).
+/// Named starting points for a configuration.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Preset {
-    /// spec.md sections 3-4 literally: PC3-style MLP encoder head, noise as in the paper.
+    /// The paper as written: PC3-style MLP encoder head, noise as in the paper.
     Paper,
-    /// procl's default: the best design found (docs/method.md).
+    /// procl's default: the paper plus the departures in docs/design.md.
     Procl,
 }
 
@@ -114,11 +114,6 @@ pub struct TrainConfig {
     /// (Frobenius norm; a rotation by `a` radians in a plane is at `2 sqrt(2) sin(a/2)`).
     #[serde(default = "default_orientation_tolerance")]
     pub orientation_tolerance: f64,
-    /// Ramp `lambda_R` linearly from 0 over this many steps (0: the full weight from step 1,
-    /// as the paper). The risk is lowest for a collapsed latent, so while CPC has not yet
-    /// spread the latent out, the risk can win the race and collapse it.
-    #[serde(default)]
-    pub risk_warmup_steps: u64,
     /// The orientation search switches when a candidate's windowed risk is below
     /// `(1 - orientation_margin)` times the current one's ...
     #[serde(default = "default_orientation_margin")]
@@ -129,15 +124,6 @@ pub struct TrainConfig {
     /// `--resume` (the count restarts).
     #[serde(default = "default_orientation_streak")]
     pub orientation_streak: u64,
-    /// Draw the batch in groups of this many samples from one stretch of one episode (1: every
-    /// sample independent, the paper's). Frames a few steps apart differ a little in every
-    /// joint, so as CPC negatives they ask the latent to resolve small moves of each joint,
-    /// where independent samples are told apart by the joint that moves the image most.
-    #[serde(default = "default_batch_group_size")]
-    pub batch_group_size: usize,
-    /// The length in steps of that stretch (at least `batch_group_size`; unused at 1).
-    #[serde(default)]
-    pub batch_group_window: usize,
     /// ProCL's and PC3's losses and networks (unused by `nvae`).
     pub loss: LossConfig,
     pub model: ModelConfig,
@@ -155,24 +141,11 @@ fn default_orientation_streak() -> u64 {
     1
 }
 
-fn default_batch_group_size() -> usize {
-    1
-}
-
 fn default_orientation_tolerance() -> f64 {
     0.05
 }
 
 impl TrainConfig {
-    /// The loss settings of step `step` (0-based): `lambda_R` ramped over the warm-up.
-    pub fn loss_at(&self, step: u64) -> LossConfig {
-        let mut loss = self.loss.clone();
-        if step < self.risk_warmup_steps {
-            loss.lambda_r *= (step + 1) as f64 / self.risk_warmup_steps as f64;
-        }
-        loss
-    }
-
     /// The configuration of `preset` for `method` on `env`.
     pub fn preset(preset: Preset, method: Method, env: EnvKind) -> Self {
         let du = env.make().action_dim();
@@ -186,13 +159,10 @@ impl TrainConfig {
             learning_rate: 1e-3,
             checkpoint_every: 500,
             orientation_search_every: 0,
-            risk_warmup_steps: 0,
             orientation_margin: default_orientation_margin(),
             orientation_streak: default_orientation_streak(),
             orientation_criterion: OrientationCriterion::Risk,
             orientation_tolerance: default_orientation_tolerance(),
-            batch_group_size: default_batch_group_size(),
-            batch_group_window: 0,
             loss: LossConfig::default(),
             model: ModelConfig::for_action_dim(du),
             nvae: None,
@@ -219,33 +189,16 @@ impl TrainConfig {
             }
         }
         if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
-            // The shoulder is a revolute joint at the image centre: keypoints in polar
-            // coordinates about it make its angle a latent coordinate (Cartesian keypoints give
-            // a ring), a tanh layer after them brings in the wrist, a latent started at unit
-            // spread and a variance floor keep it from collapsing, and the action response
-            // orients it (the risk search cannot tell the candidates apart here). The risk is
-            // computed on the standardised latent (`risk_latent_std = 1`) so it cannot shrink
-            // it, with gains that match that scale: the risk is homogeneous of degree 2 in the
-            // latent, so `Kp = 1, Kd = 0.2` train the paper's `Kp = 10, Kd = 2` on a latent of
-            // std 0.1, while the controller on `h` gets the gains the risk trained for
-            // (docs/method.md, Reacher-2D stop 15). `V` has no velocity term (`Q_v = 0`): the
-            // wrist's velocity follows the torque within a step, so that term charged the true
-            // joint angles ten times a latent with a faint wrist. Without it the risk can weigh
-            // ten times more than stop 15's 0.1 (`lambda_R = 1`): 69.5/66.5/74.5% on 3 seeds
-            // against 61.5/60/65% (stop 20). The angles between keypoints resolve the folded
-            // wrist (the angle from elbow to fingertip is half the wrist angle at any
-            // shoulder), entering from 0 so the fresh latent is not curled by a random mix of
-            // them, with the angle faded to 0 at the cut so the forearm crossing it does not
-            // jump; the keypoints attend over 32x32 cells of the image, which the folded
-            // wrist's few pixels need: 74/72/82.5% against 69.5/66.5/74.5% (stop 22), at
-            // about twice the training time.
+            // The shoulder is a revolute joint at the image centre: polar keypoints about it,
+            // the angles between keypoints (entering from 0, faded at the angle cut) over 32x32
+            // cells, a tanh layer, a latent started at unit spread and held there by a variance
+            // floor, orientation by the action response, and the risk on the standardised latent
+            // with gains matched to that scale (docs/design.md, "Reacher").
             config.model.encoder.head = EncoderHead::SoftArgmax {
                 keypoints: 16,
                 hidden: 32,
                 polar: true,
-                with_cartesian: false,
                 pairwise_angles: true,
-                linear_base: false,
             };
             config.model.encoder.pairwise_init_scale = 0.0;
             config.model.encoder.polar_cut_fade_deg = 15.0;
@@ -259,39 +212,27 @@ impl TrainConfig {
             config.loss.kd = 0.2;
             config.loss.lambda_r /= 10.0;
             if method == Method::Procl {
-                // PC3 has no risk; its config stays the one stop 15 measured.
+                // The risk's velocity term charges the heavily damped wrist for its velocity
+                // jumps, so `V` has none; the sign term and its singular-value floor keep the
+                // latent from hooking back at the shoulder's ends. Both are PD-controllability
+                // terms like the risk, so PC3 gets neither (docs/design.md, "Reacher").
                 config.loss.q_v = 0.0;
-                // The latent hooks back at the shoulder's ends, where the action on a latent
-                // coordinate moves it backwards and PD pushes away from the goal. The sign term
-                // charges negative diagonals of the 5-step response map in six groups along the
-                // latent's long axis: 85.5/86/78.5% on 3 seeds against 84.5/81/75% without it
-                // (docs/method.md, reacher stop 29). It is a PD-controllability term like the
-                // risk, so PC3 does not get it either.
                 config.loss.action_response_sign_weight = 3.0;
                 config.loss.action_response_horizon = 5;
                 config.loss.action_response_velocity = true;
                 config.loss.action_response_regions = 6;
-                // A group's map may not squash a direction either: its smaller singular value
-                // is held above a quarter of the batch's rms drive entry (standardised joint
-                // angles sit at 0.33-0.47). Seed 2's near misses ended in a valley where the
-                // wrist's response was squashed: 89.5/85/83.5% on seeds 0-2 against 85.5/86/78.5%
-                // (docs/method.md, reacher stop 32).
                 config.loss.action_response_singular_floor = 0.25;
             }
         }
         if env == EnvKind::Fetch {
-            // spec.md 3: dt_R = 1 for Fetch (the env's control dt for the 2D envs).
+            // The paper's dt_R for Fetch is 1 (the env's control dt for the 2-D envs).
             config.loss.lyapunov_dt_s = Some(1.0);
             if preset == Preset::Procl {
                 // A signed permutation leaves Fetch's latent up to 45 degrees from the gripper
-                // axes; the action response measures and removes the whole rotation
-                // (docs/method.md, Fetch-3D: 64-84% with the risk search, 94-100% with this).
+                // axes; the action response measures and removes the whole rotation, and a
+                // larger Kd damps the orbits a slightly turned latent makes about its goal
+                // (docs/design.md, "Fetch").
                 config.orientation_criterion = OrientationCriterion::ActionResponse;
-                // PD on a latent `h = J p` is stable only where every eigenvalue `r e^{i theta}`
-                // of `a_max J` has `r > (Kp / Kd^2) sin^2 theta / cos theta`: a latent turned
-                // against the gripper axes, or short along one, orbits its goal. At Kd = 2 (Kp
-                // = 10) 40 of seed 1's 45 failures still moved after 250 steps; at Kd = 4 the
-                // bound is 4 times lower (docs/method.md, Fetch stop 25: 95.5% -> 99.5%).
                 config.loss.kd = 4.0;
             }
         }
@@ -302,13 +243,6 @@ impl TrainConfig {
     pub fn validate(&self) -> Result<()> {
         if self.steps == 0 {
             return Err(Error::config("steps", "must be at least 1"));
-        }
-        let du = self.env.make().action_dim();
-        if self.loss.action_response_sign_form == crate::losses::SignForm::Eigenvalues && du != 2 {
-            return Err(Error::config(
-                "loss.action_response_sign_form",
-                format!("eigenvalues needs 2-D actions; {} has {du}", self.env),
-            ));
         }
         if !(0.0..1.0).contains(&self.orientation_margin) {
             return Err(Error::config(
@@ -331,33 +265,6 @@ impl TrainConfig {
                 ),
             ));
         }
-        if self.batch_group_size == 0 || !self.batch_size.is_multiple_of(self.batch_group_size) {
-            return Err(Error::config(
-                "batch_group_size",
-                format!(
-                    "{} must be at least 1 and divide batch_size = {}",
-                    self.batch_group_size, self.batch_size
-                ),
-            ));
-        }
-        if self.batch_group_size > 1 && self.batch_group_window < self.batch_group_size {
-            return Err(Error::config(
-                "batch_group_window",
-                format!(
-                    "{} must be at least batch_group_size = {} (distinct steps in a group)",
-                    self.batch_group_window, self.batch_group_size
-                ),
-            ));
-        }
-        if self.batch_group_size > 1 && self.loss.frames_ahead() > 1 {
-            return Err(Error::config(
-                "loss.action_response_horizon",
-                format!(
-                    "{} steps cannot be read from grouped batches (batch_group_size = {}); use 1",
-                    self.loss.action_response_horizon, self.batch_group_size
-                ),
-            ));
-        }
         if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
             return Err(Error::config(
                 "learning_rate",
@@ -366,24 +273,6 @@ impl TrainConfig {
         }
         if self.checkpoint_every == 0 {
             return Err(Error::config("checkpoint_every", "must be at least 1"));
-        }
-        if self.loss.decoder_weight > 0.0 && self.model.feature_decoder_width == 0 {
-            return Err(Error::config(
-                "loss.decoder_weight",
-                format!(
-                    "{} needs a feature decoder: set model.feature_decoder_width > 0",
-                    self.loss.decoder_weight
-                ),
-            ));
-        }
-        if self.loss.stretch_weight > 0.0 && self.model.encoder.keypoint_feature_count().is_none() {
-            return Err(Error::config(
-                "loss.stretch_weight",
-                format!(
-                    "{} needs the keypoint head's features: set model.encoder.head.kind = \"soft-argmax\"",
-                    self.loss.stretch_weight
-                ),
-            ));
         }
         if self.orientation_search_every > 0
             && !self
@@ -396,22 +285,6 @@ impl TrainConfig {
                     "{} must divide checkpoint_every = {} (so a resumed run searches the same windows)",
                     self.orientation_search_every, self.checkpoint_every
                 ),
-            ));
-        }
-        // The action-response search measures the turn the gains have not (yet) fixed and
-        // turns the dynamics' input matrix with the latent; the risk search cannot see it.
-        if self.orientation_search_every != 0
-            && self.orientation_criterion == OrientationCriterion::Risk
-            && matches!(
-                self.model.dynamics.input,
-                DynamicsInput::ConstantDiagonal { .. }
-            )
-        {
-            return Err(Error::config(
-                "orientation_search_every",
-                "must be 0 with model.dynamics.input constant-diagonal and the risk criterion \
-                 (its positive input gains fix the orientation; a risk search could only turn \
-                 the latent against them)",
             ));
         }
         if self.method == Method::Pc3 && self.loss.lambda_r != 0.0 {
@@ -592,31 +465,6 @@ fn k_step_drive(data: &Dataset, batch: &[(usize, usize)], k: usize) -> Vec<f32> 
         .collect()
 }
 
-/// `n` samples in groups of `group` distinct steps of one episode, inside a stretch of
-/// `window` consecutive steps (shortened to the episode's if longer).
-pub(crate) fn sample_grouped_batch(
-    data: &Dataset,
-    rng: &mut ChaCha8Rng,
-    n: usize,
-    group: usize,
-    window: usize,
-) -> Vec<(usize, usize)> {
-    // Valid steps are 1..steps: each sample needs the frames t - 1, t and t + 1.
-    let window = window.min(data.steps() - 1);
-    let mut batch = Vec::with_capacity(n);
-    while batch.len() < n {
-        let episode = rng.random_range(0..data.episodes());
-        let start = rng.random_range(1..=data.steps() - window);
-        let take = group.min(window).min(n - batch.len());
-        batch.extend(
-            rand::seq::index::sample(rng, window, take)
-                .into_iter()
-                .map(|offset| (episode, start + offset)),
-        );
-    }
-    batch
-}
-
 /// `[n, d]` standard normal draws from `rng` (Box-Muller; deterministic for a seed).
 pub(crate) fn normal_tensor(
     rng: &mut ChaCha8Rng,
@@ -675,36 +523,13 @@ pub fn loss_inputs(
     step: u64,
     device: &Device,
 ) -> LossInputs {
-    loss_inputs_and_batch(model, data, config, step, device).0
-}
-
-/// [`loss_inputs`] and the batch's `(episode, t)` of each `h_t`.
-fn loss_inputs_and_batch(
-    model: &ProclModel,
-    data: &Dataset,
-    config: &TrainConfig,
-    step: u64,
-    device: &Device,
-) -> (LossInputs, Vec<(usize, usize)>) {
     let mut rng = step_rng(config.seed, step);
     let n = config.batch_size;
     let du = data.action_dim();
-    // The k-step action-response term needs the frame `i_{t+k}` of each sample.
+    // The k-step sign term needs the frame `i_{t+k}` of each sample.
     let reach = config.loss.frames_ahead();
-    let batch = if config.batch_group_size > 1 {
-        sample_grouped_batch(
-            data,
-            &mut rng,
-            n,
-            config.batch_group_size,
-            config.batch_group_window,
-        )
-    } else {
-        sample_batch_reaching(data, &mut rng, n, reach)
-    };
+    let batch = sample_batch_reaching(data, &mut rng, n, reach);
     let (frames, u) = batch_tensors(data, &batch, device);
-    let frame_distances = (config.loss.separation_weight > 0.0)
-        .then(|| crate::losses::frame_block_distances(frames.clone().narrow(0, n, n)));
     // The frames `i_{t+k}` ride in the same encoder call as the others.
     let frames = if reach > 1 {
         let ahead_frames =
@@ -713,12 +538,7 @@ fn loss_inputs_and_batch(
     } else {
         frames
     };
-    let decoder = model
-        .feature_decoder
-        .as_ref()
-        .filter(|_| config.loss.decoder_weight > 0.0);
-    // [3n or 4n, du]; the keypoint head computes its features either way.
-    let (h, features) = model.encoder.forward_with_features(frames);
+    let h = model.encoder.forward(frames); // [3n or 4n, du]
     let ahead = (reach > 1).then(|| {
         let drive = TensorData::new(k_step_drive(data, &batch, reach), [n, du]);
         (
@@ -728,7 +548,7 @@ fn loss_inputs_and_batch(
     });
     let mut permutation: Vec<usize> = (0..n).collect();
     permutation.shuffle(&mut rng);
-    let inputs = LossInputs {
+    LossInputs {
         h_prev: h.clone().narrow(0, 0, n),
         h_now: h.clone().narrow(0, n, n),
         h_next: h.narrow(0, 2 * n, n),
@@ -741,73 +561,6 @@ fn loss_inputs_and_batch(
         ),
         permutation,
         ahead,
-        frame_distances,
-        decoded_features: None,
-        stretch_features: features
-            .as_ref()
-            .filter(|_| config.loss.stretch_weight > 0.0)
-            .map(|features| features.clone().narrow(0, 0, 3 * n).detach()),
-    };
-    // Drawn last, so switching the term on leaves every other draw of the step as it was.
-    let decoded_features = decoder.zip(features).map(|(decoder, features)| {
-        let features = features.narrow(0, n, n);
-        let held = config
-            .loss
-            .decoder_head_only
-            .then(|| features.clone().detach());
-        let h_now = held
-            .and_then(|features| model.encoder.latent_from_features(features))
-            .unwrap_or_else(|| inputs.h_now.clone());
-        let standardised = crate::losses::decoder_input(h_now);
-        let noise = normal_tensor(&mut rng, n, du, device) * config.loss.decoder_noise;
-        (decoder.forward(standardised + noise), features)
-    });
-    let inputs = LossInputs {
-        decoded_features,
-        ..inputs
-    };
-    (inputs, batch)
-}
-
-/// The standardised true configuration `s(q) = (q - mean) / std` per coordinate, over every
-/// state of a dataset: the target of the diagnostic [`LossConfig::state_supervision_weight`].
-struct StateStandardiser {
-    mean: Vec<f64>,
-    std: Vec<f64>,
-}
-
-impl StateStandardiser {
-    fn new(data: &Dataset) -> Self {
-        let dq = data.config_dim();
-        let count = (data.episodes() * (data.steps() + 1)).max(1) as f64;
-        let column = |i: usize| data.states.index_axis(ndarray::Axis(2), i);
-        let mean: Vec<f64> = (0..dq)
-            .map(|i| column(i).iter().map(|&x| x as f64).sum::<f64>() / count)
-            .collect();
-        let std = (0..dq)
-            .map(|i| {
-                let var = column(i)
-                    .iter()
-                    .map(|&x| (x as f64 - mean[i]).powi(2))
-                    .sum::<f64>()
-                    / count;
-                // A joint that never moves is held at 0 rather than divided by 0.
-                var.sqrt().max(1e-6)
-            })
-            .collect();
-        Self { mean, std }
-    }
-
-    /// `s(q_t)` of each sample, `[n, dq]`.
-    fn targets(&self, data: &Dataset, batch: &[(usize, usize)], device: &Device) -> Tensor<2> {
-        let dq = self.mean.len();
-        let values: Vec<f32> = batch
-            .iter()
-            .flat_map(|&(e, t)| data.config(e, t))
-            .enumerate()
-            .map(|(k, q)| ((q - self.mean[k % dq]) / self.std[k % dq]) as f32)
-            .collect();
-        Tensor::from_data(TensorData::new(values, [batch.len(), dq]), device)
     }
 }
 
@@ -892,8 +645,6 @@ struct ProclObjective<'a> {
     run: &'a RunPaths,
     device: &'a Device,
     search: Option<LatentOrienter>,
-    /// The diagnostic state supervision's target, when its weight is above 0.
-    state_target: Option<StateStandardiser>,
 }
 
 impl Objective for ProclObjective<'_> {
@@ -904,10 +655,7 @@ impl Objective for ProclObjective<'_> {
         let data = self.data;
         let every_frame =
             (0..data.episodes()).flat_map(|e| (0..=data.steps()).map(move |t| data.frame(e, t)));
-        model.encoder = match self.config.model.encoder.polar_cut_deg {
-            Some(cut_deg) => model.encoder.with_polar_cut_at(cut_deg),
-            None => model.encoder.place_polar_cut(every_frame),
-        };
+        model.encoder = model.encoder.place_polar_cut(every_frame);
         if let Some(target_std) = self.config.model.encoder.init_latent_std
             && target_std > 0.0
         {
@@ -919,27 +667,12 @@ impl Objective for ProclObjective<'_> {
 
     fn loss(&mut self, model: &ProclModel, step: u64) -> (Tensor<1>, StepValues) {
         let dt = self.data.meta.control_dt_s;
-        let (inputs, batch) =
-            loss_inputs_and_batch(model, self.data, self.config, step, self.device);
+        let inputs = loss_inputs(model, self.data, self.config, step, self.device);
         if let Some(search) = self.search.as_mut() {
             search.observe(&inputs, &self.config.loss, dt);
         }
-        let supervision = self.state_target.as_ref().map(|target| {
-            let error = inputs.h_now.clone() - target.targets(self.data, &batch, self.device);
-            error.powf_scalar(2.0).mean() * self.config.loss.state_supervision_weight
-        });
-        let terms = procl_loss(&self.config.loss_at(step), &model.dynamics, inputs, dt);
-        let mut values: StepValues = terms.values().into();
-        let total = match supervision {
-            Some(term) => {
-                let total = terms.total + term;
-                // The logged total is the loss minimised, the diagnostic term included.
-                values.values[0] = crate::model::read_scalars(&[&total])[0];
-                total
-            }
-            None => terms.total,
-        };
-        (total, values)
+        let terms = procl_loss(&self.config.loss, &model.dynamics, inputs, dt);
+        (terms.total.clone(), terms.values().into())
     }
 
     fn after_update(&mut self, model: ProclModel, step: u64) -> Result<ProclModel> {
@@ -992,16 +725,6 @@ pub fn train(
             ),
         ));
     }
-    if config.loss.state_supervision_weight > 0.0 && data.config_dim() != data.action_dim() {
-        return Err(Error::config(
-            "loss.state_supervision_weight",
-            format!(
-                "needs dim q = dim u; the dataset has {} and {}",
-                data.config_dim(),
-                data.action_dim()
-            ),
-        ));
-    }
     let device = &device.clone().autodiff();
     match &config.nvae {
         Some(nvae) => {
@@ -1018,8 +741,6 @@ pub fn train(
                 device,
                 search: (config.orientation_search_every > 0)
                     .then(|| LatentOrienter::new(config.orientation_criterion, data.action_dim())),
-                state_target: (config.loss.state_supervision_weight > 0.0)
-                    .then(|| StateStandardiser::new(data)),
             };
             run_training(objective, model, config, run, resume, device, &mut progress)
         }
@@ -1255,7 +976,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn fetch_uses_the_specs_lyapunov_dt() {
+    fn fetch_uses_the_papers_lyapunov_dt() {
         for preset in [Preset::Paper, Preset::Procl] {
             let fetch = TrainConfig::preset(preset, Method::Procl, EnvKind::Fetch);
             assert_eq!(fetch.loss.lyapunov_dt_s, Some(1.0));
@@ -1301,12 +1022,12 @@ mod tests {
     fn a_value_of_the_wrong_type_is_refused_by_its_path() {
         for (text, field) in [
             (
-                "[model.dynamics]\nfull_covariance = \"yes\"",
-                "model.dynamics.full_covariance",
+                "[model.dynamics]\ninit_std = \"yes\"",
+                "model.dynamics.init_std",
             ),
             (
-                "[loss]\naction_response_weight = \"x\"",
-                "loss.action_response_weight",
+                "[loss]\naction_response_sign_weight = \"x\"",
+                "loss.action_response_sign_weight",
             ),
             ("steps = -3", "steps"),
         ] {
@@ -1328,16 +1049,6 @@ mod tests {
         config.orientation_tolerance = f64::NAN;
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("orientation_tolerance"), "{err}");
-        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-        config.model.dynamics.input = DynamicsInput::ConstantDiagonal { initial_gain: 1.0 };
-        // The preset's action-response search may turn the gains with the latent...
-        assert!(config.validate().is_ok());
-        // ...the risk search may not.
-        config.orientation_criterion = OrientationCriterion::Risk;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("orientation_search_every"), "{err}");
-        config.orientation_search_every = 0;
-        assert!(config.validate().is_ok());
     }
 
     /// `transitions` random-control transitions of `env` in episodes of 20 steps.
@@ -1352,7 +1063,6 @@ mod tests {
 
     #[test]
     fn k_step_drive_is_what_an_euler_latent_responds_to() {
-        use crate::losses::action_response_unexplained;
         let data = tiny_dataset(EnvKind::PointMass, 5, 400);
         let (dt, k) = (0.02f32, 6);
         // A latent that moves by Euler steps with one input gain `B` (turned and sheared), from
@@ -1389,23 +1099,16 @@ mod tests {
             TensorData::new(k_step_drive(&data, &batch, k), [batch.len(), 2]),
             &device,
         );
-        let unexplained = |map: &dyn Fn([f32; 2]) -> [f32; 2]| {
-            let (prev, now, ahead) = (rows(map, -1), rows(map, 0), rows(map, k as isize));
-            let response = ahead - now.clone() - (now - prev) * k as f32;
-            crate::model::to_vec(action_response_unexplained(response, drive.clone()))[0]
-        };
-        // Flat: one linear map of the drive explains the whole k-step response.
-        let flat = unexplained(&|h| h);
-        assert!(flat < 1e-3, "flat latent: {flat}");
-        // The same latent curled round the origin: its response turns with the arc.
-        let curled = unexplained(&|h| {
-            let (r, angle) = (2.0 + h[1], 1.5 * h[0]);
-            [r * angle.cos(), r * angle.sin()]
-        });
-        assert!(
-            curled > 0.05 && curled > 50.0 * flat,
-            "curled {curled}, flat {flat}"
-        );
+        // The response `h_{t+k} - h_t - k (h_t - h_{t-1})` is `dt^2 40 B` times the drive.
+        let (prev, now, ahead) = (rows(&|h| h, -1), rows(&|h| h, 0), rows(&|h| h, k as isize));
+        let response = crate::model::to_vec(ahead - now.clone() - (now - prev) * k as f32);
+        let drive = crate::model::to_vec(drive);
+        for (row, (r, d)) in response.chunks(2).zip(drive.chunks(2)).enumerate() {
+            for i in 0..2 {
+                let want = dt * dt * 40.0 * (gain[i][0] * d[0] + gain[i][1] * d[1]);
+                assert!((r[i] - want).abs() < 1e-4, "row {row}, dim {i}: {} vs {want}", r[i]);
+            }
+        }
     }
 
     #[test]
@@ -1414,22 +1117,12 @@ mod tests {
         let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
         config.batch_size = 24;
         config.loss.action_response_horizon = 3;
-        config.loss.action_response_weight = 2.0;
-        config.loss.action_response_turn_weight = 5.0;
-        config.loss.action_response_sign_weight = 6.0;
-        config.loss.separation_weight = 3.0;
-        // A ratio far above any fresh latent's, so every pair is charged.
-        config.loss.separation_ratio = 10.0;
-        config.loss.decoder_weight = 2.0;
-        config.model.feature_decoder_width = 8;
-        config.loss.stretch_weight = 4.0;
-        // A ratio far above any fresh latent's, so most steps are charged.
-        config.loss.stretch_ratio = 10.0;
+        config.loss.action_response_regions = 3;
         // A floor above any fresh latent's spread, so the hinge is logged above 0.
         config.loss.variance_floor = Some(100.0);
         let device = crate::model::cpu_device();
         let model = config.model.init(7, &device).expect("model");
-        let (inputs, _) = loss_inputs_and_batch(&model, &data, &config, 0, &device);
+        let inputs = loss_inputs(&model, &data, &config, 0, &device);
         let dt = data.meta.control_dt_s;
         let values: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
@@ -1442,64 +1135,23 @@ mod tests {
         let recombined = loss.lambda_pc3 * pc3
             + loss.lambda_r * term("lyap")
             + loss.variance_weight * term("var")
-            + loss.action_response_weight * term("flat")
-            + loss.action_response_turn_weight * term("turn")
-            + loss.action_response_sign_weight * term("sign")
-            + loss.separation_weight * term("sep")
-            + loss.decoder_weight * term("dec")
-            + loss.stretch_weight * term("stretch");
+            + loss.action_response_sign_weight * term("sign");
         assert!(
             (recombined - values.total()).abs() <= 1e-4 * values.total().abs().max(1.0),
             "{values}: recombined {recombined}"
         );
-        assert!(term("var") > 1.0 && term("flat") > 0.0, "{values}");
-        assert!((0.0..=1.0).contains(&term("turn")), "{values}");
+        assert!(term("var") > 1.0, "{values}");
         assert!(term("sign") >= 0.0, "{values}");
-        assert!(term("sep") > 0.0 && term("stretch") > 0.0, "{values}");
-        // The decoder starts constant: it leaves all of the features' variance.
-        assert!((term("dec") - 1.0).abs() < 1e-5, "{values}");
-        // Decoding an h recomputed from the held features changes where the gradient goes,
-        // not what is decoded (the head's own test checks the gradient). A drawn output layer,
-        // so the decoder is not constant.
-        let mut drawn = model.clone();
-        let width = config
-            .model
-            .encoder
-            .keypoint_feature_count()
-            .expect("keypoints");
-        drawn.feature_decoder = Some(crate::model::FeatureDecoder::new(2, 8, width, &device));
-        let decoded = |config: &TrainConfig| {
-            let (inputs, _) = loss_inputs_and_batch(&drawn, &data, config, 0, &device);
-            let (decoded, features) = inputs.decoded_features.expect("decoder on");
-            (
-                crate::model::to_vec(decoded),
-                crate::model::to_vec(features),
-            )
-        };
-        let whole = decoded(&config);
-        assert!(whole.0.iter().any(|&x| x != 0.0));
-        config.loss.decoder_head_only = true;
-        let (head_only, features) = decoded(&config);
-        assert_eq!(features, whole.1);
-        for (a, b) in head_only.iter().zip(&whole.0) {
-            assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "{a} vs {b}");
-        }
 
         // Switched off, a term is logged as 0 and the header keeps its column.
-        config.loss.action_response_weight = 0.0;
-        config.loss.action_response_turn_weight = 0.0;
         config.loss.action_response_sign_weight = 0.0;
         config.loss.variance_floor = None;
-        config.loss.separation_weight = 0.0;
-        config.loss.decoder_weight = 0.0;
-        config.loss.stretch_weight = 0.0;
-        let (inputs, _) = loss_inputs_and_batch(&model, &data, &config, 0, &device);
-        assert!(inputs.frame_distances.is_none() && inputs.decoded_features.is_none());
-        assert!(inputs.stretch_features.is_none());
+        let inputs = loss_inputs(&model, &data, &config, 0, &device);
+        assert!(inputs.ahead.is_none());
         let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
             .into();
-        for name in ["var", "flat", "turn", "sign", "sep", "dec", "stretch"] {
+        for name in ["var", "sign"] {
             assert_eq!(off.get(name), Some(0.0), "{off}");
         }
         assert_eq!(off.names, &LOSS_NAMES);
@@ -1518,112 +1170,23 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text,
-            "step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,sign,seconds\n\
-             1,5,1,2,0,0.5,,,,,,,,1.5\n2,4,1,1.5,0,0.4,,,,,,,,3\n"
+            "step,total,cpc,cons,curv,lyap,var,sign,seconds\n\
+             1,5,1,2,0,0.5,,,1.5\n2,4,1,1.5,0,0.4,,,3\n"
         );
         // Under the current header rows are kept as they are.
         truncate_metrics(&path, 1, &header).expect("truncate again");
         let text = std::fs::read_to_string(&path).expect("read");
-        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,,,,,,1.5\n"));
-    }
-
-    #[test]
-    fn grouped_batches_take_distinct_nearby_steps_of_one_episode() {
-        let data = tiny_dataset(EnvKind::PointMass, 3, 120);
-        let mut rng = step_rng(7, 0);
-        let batch = sample_grouped_batch(&data, &mut rng, 24, 4, 6);
-        assert_eq!(batch.len(), 24);
-        for group in batch.chunks(4) {
-            let mut steps: Vec<usize> = group.iter().map(|&(_, t)| t).collect();
-            assert!(group.iter().all(|&(e, _)| e == group[0].0 && e < 6));
-            steps.sort_unstable();
-            steps.dedup();
-            assert_eq!(steps.len(), 4, "distinct steps {group:?}");
-            // Inside one stretch of 6 steps, and a whole sample (t - 1, t + 1) in the episode.
-            assert!(steps[3] - steps[0] < 6, "{group:?}");
-            assert!(steps[0] >= 1 && steps[3] < 20, "{group:?}");
-        }
-        // Seeded: the same stream gives the same batch.
-        assert_eq!(
-            batch,
-            sample_grouped_batch(&data, &mut step_rng(7, 0), 24, 4, 6)
-        );
-        // A window longer than the episode is cut to it.
-        let long = sample_grouped_batch(&data, &mut rng, 8, 4, 500);
-        assert!(long.iter().all(|&(_, t)| (1..20).contains(&t)));
-    }
-
-    #[test]
-    fn state_supervision_targets_are_the_standardised_configuration() {
-        let data = tiny_dataset(EnvKind::Reacher, 3, 200);
-        let device = Device::default();
-        let target = StateStandardiser::new(&data);
-        let every: Vec<(usize, usize)> = (0..data.episodes())
-            .flat_map(|e| (0..=data.steps()).map(move |t| (e, t)))
-            .collect();
-        let s = crate::model::to_vec(target.targets(&data, &every, &device));
-        let dq = data.config_dim();
-        assert_eq!(s.len(), every.len() * dq);
-        for i in 0..dq {
-            let column: Vec<f64> = s.iter().skip(i).step_by(dq).map(|&x| x as f64).collect();
-            let mean = column.iter().sum::<f64>() / column.len() as f64;
-            let var = column.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / column.len() as f64;
-            assert!(mean.abs() < 1e-4, "coordinate {i}: mean {mean}");
-            assert!((var - 1.0).abs() < 1e-3, "coordinate {i}: variance {var}");
-        }
-        // One sample by hand: the wrist of episode 2, step 7.
-        let q = data.config(2, 7)[1];
-        let wrist: Vec<f64> = every.iter().map(|&(e, t)| data.config(e, t)[1]).collect();
-        let mean = wrist.iter().sum::<f64>() / wrist.len() as f64;
-        let std =
-            (wrist.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / wrist.len() as f64).sqrt();
-        let got = crate::model::to_vec(target.targets(&data, &[(2, 7)], &device))[1] as f64;
-        assert!(
-            (got - (q - mean) / std).abs() < 1e-4,
-            "{got} vs {}",
-            (q - mean) / std
-        );
-        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-        config.loss.state_supervision_weight = -1.0;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("loss.state_supervision_weight"), "{err}");
-    }
-
-    #[test]
-    fn batch_groups_are_checked_by_name() {
-        // The point mass: the reacher's preset reads 5 steps ahead, which grouped batches
-        // cannot serve (`action_response_horizon_is_checked_by_name`).
-        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
-        config.batch_group_size = 3;
-        config.batch_group_window = 8;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("batch_group_size"), "{err}");
-        config.batch_group_size = 4;
-        config.batch_group_window = 2;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("batch_group_window"), "{err}");
-        config.batch_group_window = 8;
-        assert!(config.validate().is_ok());
+        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,1.5\n"));
     }
 
     #[test]
     fn action_response_horizon_is_checked_by_name() {
         let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-        config.loss.action_response_weight = 3.0;
         config.loss.action_response_horizon = 0;
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("loss.action_response_horizon"), "{err}");
-        // k steps ahead cannot be read from grouped batches; one step can.
-        config.loss.action_response_horizon = 5;
-        config.batch_group_size = 4;
-        config.batch_group_window = 8;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("loss.action_response_horizon"), "{err}");
-        config.loss.action_response_horizon = 1;
-        assert!(config.validate().is_ok());
         // A horizon longer than the dataset's episodes is refused before training starts.
         let data = tiny_dataset(EnvKind::Reacher, 1, 40);
-        config.batch_group_size = 1;
         config.loss.action_response_horizon = 20;
         let dir = std::env::temp_dir().join(format!("procl-horizon-{}", std::process::id()));
         let device = crate::model::cpu_device();
@@ -1641,15 +1204,4 @@ mod tests {
         assert!(!dir.exists(), "nothing is written for a refused config");
     }
 
-    #[test]
-    fn risk_weight_ramps_over_the_warm_up() {
-        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
-        config.loss.lambda_r = 10.0;
-        assert_eq!(config.loss_at(0).lambda_r, 10.0);
-        config.risk_warmup_steps = 4;
-        let weights: Vec<f64> = (0..6).map(|s| config.loss_at(s).lambda_r).collect();
-        assert_eq!(weights, [2.5, 5.0, 7.5, 10.0, 10.0, 10.0]);
-        // Nothing else changes.
-        assert_eq!(config.loss_at(0).kp, config.loss.kp);
-    }
 }

@@ -4,8 +4,6 @@ use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::{relu, softmax, tanh};
-use burn::tensor::module::interpolate;
-use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::envs::{FRAME_BYTES, FRAME_PX};
@@ -35,12 +33,6 @@ pub enum EncoderHead {
         hidden: usize,
         #[serde(default)]
         polar: bool,
-        /// With `polar = true`, also feed each keypoint's expected `(x, y)` to the next layer.
-        /// Polar coordinates about the centre resolve a link anchored there but not a point
-        /// that comes close to the centre (the reacher's fingertip with the wrist folded back
-        /// lies within a cell or two of it) or crosses the cut; `(x, y)` is smooth at both.
-        #[serde(default)]
-        with_cartesian: bool,
         /// With `polar = true`, also feed the angle between every pair of keypoints, seen from
         /// the centre (from their expected `(x, y)`). A keypoint's own angle jumps where it
         /// crosses the cut; the angle between two keypoints jumps only where it reaches
@@ -49,17 +41,6 @@ pub enum EncoderHead {
         /// the fingertip's own angle (shoulder + wrist / 2) sweeps more than a full turn.
         #[serde(default)]
         pairwise_angles: bool,
-        /// With `polar`, `pairwise_angles` and a tanh layer: `h_0` is one linear map of the
-        /// keypoints' angles about the centre (the base coordinate), and `h_1..` come from the
-        /// tanh layer on the keypoints' radii and pairwise angles only, inputs that do not change
-        /// when the whole scene turns about the centre. For a planar arm whose base joint sits
-        /// at the centre that is the joint structure: the base angle turns every link, and the
-        /// outer joint shows in the angles between links (the reacher's wrist is twice the
-        /// angle between elbow and fingertip). With one tanh layer on every input, CPC curls
-        /// the shoulder's 320 degrees into a U whose ends a fixed PD gain cannot follow
-        /// (stops 17-21); a linear map of angles cannot curl.
-        #[serde(default)]
-        linear_base: bool,
     },
 }
 
@@ -71,10 +52,9 @@ pub struct EncoderConfig {
     /// Channels of the two trunk convs (64 -> 32 -> 16 pixels at the default strides).
     pub trunk_channels: [usize; 2],
     /// Stride of the trunk's second conv: 2 (16x16 keypoint cells of 4 pixels) or, with a
-    /// soft-argmax head, 1 (32x32 cells of 2 pixels, four times the second conv's work). Unlike
-    /// `keypoint_upsample`, which interpolates the 16x16 maps, the finer cells see the image at
-    /// that resolution: at the reacher's folded wrist the fingertip lies 4-12 pixels from the
-    /// centre, one to three coarse cells.
+    /// soft-argmax head, 1 (32x32 cells of 2 pixels, four times the second conv's work). At the
+    /// reacher's folded wrist the fingertip lies 4-12 pixels from the centre, one to three
+    /// coarse cells.
     #[serde(default = "default_trunk_second_stride")]
     pub trunk_second_stride: usize,
     /// The head.
@@ -93,12 +73,6 @@ pub struct EncoderConfig {
     /// that sets it).
     #[serde(default)]
     pub init_latent_std: Option<f64>,
-    /// Soft-argmax heads: upsample the keypoint feature maps bilinearly by this factor before
-    /// the attention (1: the trunk's 16x16 cells). The attention then averages over finer cells,
-    /// which matters for polar keypoints near the centre, where one of the 16x16 cells spans up
-    /// to 90 degrees of angle.
-    #[serde(default = "default_keypoint_upsample")]
-    pub keypoint_upsample: usize,
     /// Polar heads with `pairwise_angles`: the fan-in initial weights from the pairwise angles
     /// into the head's first layer are multiplied by this (1: as drawn; 0: the angles start
     /// with no influence and enter only as training finds them useful). Pairwise angles of
@@ -112,29 +86,6 @@ pub struct EncoderConfig {
     /// there; faded, its angle goes to 0 from both sides and stays continuous.
     #[serde(default)]
     pub polar_cut_fade_deg: f64,
-    /// Polar heads: the direction of the angle cut in the image, degrees from +x with image
-    /// rows growing downwards (`None`: the quietest direction of the training frames, see
-    /// [`Encoder::place_polar_cut`]). On the reacher that estimate lands at 167.5 degrees,
-    /// 7.5 degrees past the shoulder's limit at -160 (the fingertip, which overhangs the gap
-    /// on one side only, shifts it); the gap's centre is 180.
-    #[serde(default)]
-    pub polar_cut_deg: Option<f64>,
-    /// Polar heads: measure every keypoint but the first from the first one's direction (each
-    /// cell's angle relative to keypoint 0's expected position, in `(-pi, pi]`), keeping only
-    /// keypoint 0's angle about the fixed axis. A keypoint's own angle jumps where it crosses
-    /// the cut, and the reacher's forearm and fingertip cross it near either shoulder limit;
-    /// seen from a keypoint on the upper arm, the fingertip is at half the wrist angle, which
-    /// never reaches 180 degrees. Only keypoint 0 can then meet the cut. Which part keypoint 0
-    /// attends to is learned.
-    #[serde(default)]
-    pub relative_angles: bool,
-    /// With `relative_angles`: keypoint 0 attends only to cells within this distance of the
-    /// centre (image half-widths; 0: anywhere). On the reacher the upper arm reaches 0.39 and
-    /// the fingertip 0.77, so a disc of 0.35 holds the upper arm in every configuration (and
-    /// the forearm only with the wrist folded past 120 degrees): keypoint 0 then measures the
-    /// shoulder, whose angle never meets the cut.
-    #[serde(default)]
-    pub relative_reference_radius: f64,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -143,10 +94,6 @@ fn default_pairwise_init_scale() -> f64 {
 
 fn default_sharpness() -> f64 {
     1.0
-}
-
-fn default_keypoint_upsample() -> usize {
-    1
 }
 
 fn default_trunk_second_stride() -> usize {
@@ -163,19 +110,13 @@ impl EncoderConfig {
                 keypoints: 16,
                 hidden: 0,
                 polar: false,
-                with_cartesian: false,
                 pairwise_angles: false,
-                linear_base: false,
             },
             keypoint_sharpness: 1.0,
             init_latent_std: None,
-            keypoint_upsample: default_keypoint_upsample(),
             trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
             polar_cut_fade_deg: 0.0,
-            polar_cut_deg: None,
-            relative_angles: false,
-            relative_reference_radius: 0.0,
         }
     }
 
@@ -185,31 +126,21 @@ impl EncoderConfig {
         let EncoderHead::SoftArgmax {
             keypoints,
             polar,
-            with_cartesian,
             pairwise_angles,
             ..
         } = self.head
         else {
             return None;
         };
-        let per_keypoint = if polar && with_cartesian { 4 } else { 2 };
         let pairs = if polar && pairwise_angles {
             keypoints * (keypoints - 1) / 2
         } else {
             0
         };
-        Some(per_keypoint * keypoints + pairs)
+        Some(2 * keypoints + pairs)
     }
 
     pub(crate) fn validate(&self) -> Result<()> {
-        if let Some(cut) = self.polar_cut_deg
-            && !cut.is_finite()
-        {
-            return Err(Error::config(
-                "model.encoder.polar_cut_deg",
-                format!("{cut} must be a finite angle in degrees"),
-            ));
-        }
         if !(self.polar_cut_fade_deg.is_finite()
             && (0.0..=180.0).contains(&self.polar_cut_fade_deg))
         {
@@ -222,12 +153,6 @@ impl EncoderConfig {
             return Err(Error::config(
                 "model.encoder.pairwise_init_scale",
                 format!("{} must be finite and >= 0", self.pairwise_init_scale),
-            ));
-        }
-        if !(1..=4).contains(&self.keypoint_upsample) {
-            return Err(Error::config(
-                "model.encoder.keypoint_upsample",
-                format!("{} must be 1, 2, 3 or 4", self.keypoint_upsample),
             ));
         }
         match (self.trunk_second_stride, self.head) {
@@ -265,69 +190,12 @@ impl EncoderConfig {
             }
             EncoderHead::SoftArgmax {
                 polar: false,
-                with_cartesian: true,
-                ..
-            } => Err(Error::config(
-                "model.encoder.head.with_cartesian",
-                "adds (x, y) to polar keypoints; it needs polar = true",
-            )),
-            EncoderHead::SoftArgmax {
-                polar: false,
                 pairwise_angles: true,
                 ..
             } => Err(Error::config(
                 "model.encoder.head.pairwise_angles",
                 "adds the angles between polar keypoints; it needs polar = true",
             )),
-            EncoderHead::SoftArgmax {
-                linear_base: true,
-                polar,
-                pairwise_angles,
-                with_cartesian,
-                hidden,
-                ..
-            } if !polar
-                || !pairwise_angles
-                || with_cartesian
-                || hidden == 0
-                || self.relative_angles
-                || self.latent_dim < 2 =>
-            {
-                Err(Error::config(
-                    "model.encoder.head.linear_base",
-                    "splits h into a base angle and the rest; it needs polar = true, \
-                     pairwise_angles = true, hidden > 0, latent_dim >= 2, and neither \
-                     with_cartesian nor relative_angles",
-                ))
-            }
-            EncoderHead::SoftArgmax { polar: false, .. } | EncoderHead::Mlp { .. }
-                if self.relative_angles =>
-            {
-                Err(Error::config(
-                    "model.encoder.relative_angles",
-                    "measures polar keypoints from keypoint 0; it needs head.polar = true",
-                ))
-            }
-            _ if !(self.relative_reference_radius.is_finite()
-                && self.relative_reference_radius >= 0.0) =>
-            {
-                Err(Error::config(
-                    "model.encoder.relative_reference_radius",
-                    format!("{} must be finite and >= 0", self.relative_reference_radius),
-                ))
-            }
-            _ if self.relative_reference_radius > 0.0 && !self.relative_angles => {
-                Err(Error::config(
-                    "model.encoder.relative_reference_radius",
-                    "confines keypoint 0 of relative angles; it needs relative_angles = true",
-                ))
-            }
-            EncoderHead::SoftArgmax { keypoints: 1, .. } if self.relative_angles => {
-                Err(Error::config(
-                    "model.encoder.relative_angles",
-                    "needs at least 2 keypoints (keypoint 0 is the reference)",
-                ))
-            }
             _ => Ok(()),
         }
     }
@@ -354,18 +222,10 @@ impl EncoderConfig {
                 keypoints,
                 hidden,
                 polar,
-                with_cartesian,
                 pairwise_angles,
-                linear_base,
             } => {
-                let with_cartesian = polar && with_cartesian;
                 let pairwise_angles = polar && pairwise_angles;
-                let linear_base = pairwise_angles && linear_base && hidden > 0;
-                // The linear base takes the K angles; the tanh layer gets everything else.
-                let features = self.keypoint_feature_count().unwrap_or(0)
-                    - if linear_base { keypoints } else { 0 };
-                let base = linear_base.then(|| LinearConfig::new(keypoints, 1).init(device));
-                let out_dim = self.latent_dim - usize::from(linear_base);
+                let features = self.keypoint_feature_count().unwrap_or(0);
                 let (hidden_layer, out_inputs) = if hidden == 0 {
                     (None, features)
                 } else {
@@ -383,15 +243,10 @@ impl EncoderConfig {
                             device,
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
-                        upsample: self.keypoint_upsample,
                         cut_fade_rad: self.polar_cut_fade_deg.to_radians(),
-                        relative_angles: polar && self.relative_angles,
-                        reference_radius: self.relative_reference_radius,
-                        with_cartesian,
                         pairwise_angles,
                         hidden: hidden_layer,
-                        base,
-                        out: LinearConfig::new(out_inputs, out_dim).init(device),
+                        out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
                         // Cut opposite +x until [`Encoder::place_polar_cut`] sees the data.
                         polar_axis: polar.then(|| {
                             Param::from_tensor(Tensor::from_data(
@@ -426,26 +281,14 @@ pub struct MlpHead {
 #[derive(Module, Debug)]
 pub struct KeypointHead {
     features: Conv2d,
-    /// Bilinear upsampling factor of the feature maps (1: none).
-    upsample: usize,
-    /// Polar keypoints followed by their `(x, y)` as well: 4 numbers per keypoint.
-    with_cartesian: bool,
     /// Polar keypoints followed by the angle between each pair of them: `K (K - 1) / 2` more.
     pairwise_angles: bool,
     /// Width of the polar angle's fade before the cut, radians (0: none).
     cut_fade_rad: f64,
-    /// Polar keypoints 1.. measured from keypoint 0's direction (see
-    /// [`EncoderConfig::relative_angles`]).
-    relative_angles: bool,
-    /// Keypoint 0's attention is confined to this distance from the centre (0: anywhere).
-    reference_radius: f64,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
     hidden: Option<Linear>,
-    /// With [`EncoderHead::SoftArgmax::linear_base`]: the keypoints' angles -> `h_0`; `out`
-    /// then gives `h_1..`.
-    base: Option<Linear>,
     out: Linear,
     /// Polar coordinates only: the unit direction `(cos m, sin m)` at which angles are 0; they
     /// are cut at `m + pi`. Not trained (excluded from init and the optimiser).
@@ -479,7 +322,7 @@ impl Encoder {
 
     /// `frames [n, 3, 64, 64]` (from [`super::frames_to_tensor`]) -> `h [n, du]`.
     pub fn forward(&self, frames: Tensor<4>) -> Tensor<2> {
-        self.forward_with_features(frames).0
+        self.orient(self.forward_unoriented(frames))
     }
 
     /// The head's output `raw [n, du]` turned by the orientation `Q`: rows are samples, so
@@ -491,7 +334,7 @@ impl Encoder {
     /// Rescales the head's output layer so the latent of `frames` has zero mean and standard
     /// deviation `target_std` in every dimension (data-dependent initialisation).
     pub fn normalise_latent_scale(mut self, frames: Tensor<4>, target_std: f64) -> Self {
-        let raw = self.forward_unoriented(frames).0.detach(); // [n, du]
+        let raw = self.forward_unoriented(frames).detach(); // [n, du]
         let mean = raw.clone().mean_dim(0); // [1, du]
         let std = (raw - mean.clone())
             .powi_scalar(2)
@@ -501,18 +344,7 @@ impl Encoder {
         let scale = std.recip() * target_std; // [1, du]
         match (&mut self.mlp, &mut self.keypoints) {
             (Some(head), _) => standardise_columns(&mut head.fc2, mean, scale),
-            (None, Some(head)) => match head.base.as_mut() {
-                // `h_0` is the base's one output, `h_1..` the rest's.
-                Some(base) => {
-                    let du = scale.dims()[1];
-                    let (mean_0, mean_rest) =
-                        (mean.clone().slice([0..1, 0..1]), mean.slice([0..1, 1..du]));
-                    let scale_0 = scale.clone().slice([0..1, 0..1]);
-                    standardise_columns(base, mean_0, scale_0);
-                    standardise_columns(&mut head.out, mean_rest, scale.slice([0..1, 1..du]));
-                }
-                None => standardise_columns(&mut head.out, mean, scale),
-            },
+            (None, Some(head)) => standardise_columns(&mut head.out, mean, scale),
             (None, None) => {}
         }
         self
@@ -529,12 +361,8 @@ impl Encoder {
             return self;
         }
         let keypoints = head.log_sharpness.val().dims()[0];
-        // The linear base takes the angles away from the first layer.
-        let per_keypoint = match (head.with_cartesian, head.base.is_some()) {
-            (true, _) => 4,
-            (false, false) => 2,
-            (false, true) => 1,
-        };
+        // Each keypoint's angle and radius come first.
+        let per_keypoint = 2;
         let first = head.hidden.as_mut().unwrap_or(&mut head.out);
         // Weights are [in, out]: the pairwise angles are the inputs after the per-keypoint ones.
         let weight = first.weight.val().detach();
@@ -568,13 +396,6 @@ impl Encoder {
         self.set_polar_cut(cut)
     }
 
-    /// Puts the polar head's angle cut at `cut_deg` (degrees from +x, image rows growing
-    /// downwards; no-op for the other heads).
-    pub fn with_polar_cut_at(self, cut_deg: f64) -> Self {
-        let (sin, cos) = cut_deg.to_radians().sin_cos();
-        self.set_polar_cut([cos as f32, sin as f32])
-    }
-
     fn set_polar_cut(mut self, [cut_x, cut_y]: [f32; 2]) -> Self {
         let Some(head) = self.keypoints.as_mut() else {
             return self;
@@ -598,121 +419,61 @@ impl Encoder {
         Some([v[0], v[1]])
     }
 
-    /// `h` of `frames` (as [`Encoder::forward`]) and, for the keypoint head, the keypoint
-    /// features `[n, F]` it was computed from (see [`EncoderConfig::keypoint_feature_count`]);
-    /// the feature decoder reconstructs these.
-    pub fn forward_with_features(&self, frames: Tensor<4>) -> (Tensor<2>, Option<Tensor<2>>) {
-        let (raw, features) = self.forward_unoriented(frames);
-        (self.orient(raw), features)
-    }
-
-    /// `h` from keypoint features `[n, F]` (as [`Encoder::forward_with_features`] gives them):
-    /// the head's layers after the keypoints, then the orientation. `None` for the MLP head.
-    pub fn latent_from_features(&self, features: Tensor<2>) -> Option<Tensor<2>> {
-        let head = self.keypoints.as_ref()?;
-        Some(self.orient(head.latent_from_features(features)))
-    }
-
-    /// The head's output before the orientation `Q`, and the keypoint features it read.
-    fn forward_unoriented(&self, frames: Tensor<4>) -> (Tensor<2>, Option<Tensor<2>>) {
+    /// The head's output before the orientation `Q`.
+    fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
         let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16], or 32x32 at stride 1
         if let Some(head) = &self.mlp {
             let x = relu(head.conv3.forward(x)); // [n, 32, 8, 8]
             let n = x.dims()[0];
             let x = relu(head.fc1.forward(x.reshape([n, 32 * 8 * 8]))); // [n, hidden]
-            return (head.fc2.forward(x), None); // [n, du]
+            return head.fc2.forward(x); // [n, du]
         }
         let head = self
             .keypoints
             .as_ref()
             .expect("encoder has one head by construction");
         let maps = head.features.forward(x); // [n, K, 16, 16] (32x32 at stride 1)
-        let maps = if head.upsample > 1 {
-            let [_, _, rows, cols] = maps.dims();
-            let size = [rows * head.upsample, cols * head.upsample];
-            let options = InterpolateOptions::new(InterpolateMode::Bilinear)
-                .with_output_size(size)
-                .with_align_corners(false);
-            interpolate(maps, options) // [n, K, 16 u, 16 u]
-        } else {
-            maps
-        };
         let [n, k, rows, cols] = maps.dims();
         let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
         let logits = maps.reshape([n, k, rows * cols]) * sharpness; // [n, K, cells]
-        let logits = if head.relative_angles && head.reference_radius > 0.0 {
-            let device = logits.device();
-            logits + reference_mask(k, rows, cols, head.reference_radius, &device)
-        } else {
-            logits
-        };
         let attention = softmax(logits, 2); // [n, K, cells]
         // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
         // angle and radius of the cells about the image centre.
         let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
         let expected = |grid: Tensor<3>| (attention.clone() * grid).sum_dim(2); // [n, K, 1]
-        let mut coordinates = match &head.polar_axis {
+        let coordinates = match &head.polar_axis {
             Some(axis) => {
                 let axis = axis.val();
                 let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
                 let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
                 let (x, y) = (grid_x.clone(), grid_y.clone());
                 let (angle, radius) = polar_grid(x, y, cos_m, sin_m, head.cut_fade_rad);
-                let angle = expected(angle);
-                let angle = if head.relative_angles {
-                    let (x, y) = (grid_x.clone(), grid_y.clone());
-                    // Only keypoint 0 keeps its angle about the fixed axis.
-                    let relative = relative_angles(attention.clone(), x, y, head.cut_fade_rad);
-                    Tensor::cat(vec![angle.slice([0..n, 0..1]), relative], 1)
-                } else {
-                    angle
-                };
-                vec![angle, expected(radius)]
+                vec![expected(angle), expected(radius)]
             }
             None => vec![expected(grid_x.clone()), expected(grid_y.clone())],
         };
-        // The polar head's extras share one expected (x, y) per keypoint.
-        let cartesian = (head.with_cartesian || head.pairwise_angles)
+        // The angles between polar keypoints come from their expected (x, y).
+        let cartesian = head
+            .pairwise_angles
             .then(|| (expected(grid_x), expected(grid_y)));
-        if head.with_cartesian
-            && let Some((x, y)) = &cartesian
-        {
-            coordinates.extend([x.clone(), y.clone()]);
-        }
         let features = coordinates.len() * k;
-        let keypoints = Tensor::cat(coordinates, 1).reshape([n, features]); // [n, 2K or 4K]
-        let keypoints = match cartesian.filter(|_| head.pairwise_angles) {
-            // [n, features + K (K - 1) / 2]
+        let keypoints = Tensor::cat(coordinates, 1).reshape([n, features]); // [n, 2K]
+        let keypoints = match cartesian {
+            // [n, 2K + K (K - 1) / 2]
             Some((x, y)) => Tensor::cat(vec![keypoints, pairwise_angles(x, y)], 1),
             None => keypoints,
         };
-        (
-            head.latent_from_features(keypoints.clone()),
-            Some(keypoints),
-        )
+        head.latent_from_features(keypoints)
     }
 }
 
 impl KeypointHead {
     /// The keypoint features `[n, F]` (the K angles, the K radii, then any extras) -> `h`.
     fn latent_from_features(&self, features: Tensor<2>) -> Tensor<2> {
-        let (base, rest) = match &self.base {
-            Some(base) => {
-                let [n, width] = features.dims();
-                let k = base.weight.dims()[0];
-                let angles = features.clone().slice([0..n, 0..k]);
-                (Some(base.forward(angles)), features.slice([0..n, k..width]))
-            }
-            None => (None, features),
-        };
-        let rest = match &self.hidden {
-            Some(hidden) => self.out.forward(tanh(hidden.forward(rest))), // [n, du or du - 1]
-            None => self.out.forward(rest),
-        };
-        match base {
-            Some(base) => Tensor::cat(vec![base, rest], 1), // [n, du]
-            None => rest,
+        match &self.hidden {
+            Some(hidden) => self.out.forward(tanh(hidden.forward(features))), // [n, du]
+            None => self.out.forward(features),
         }
     }
 }
@@ -764,35 +525,6 @@ fn polar_grid(
         angle
     };
     (angle * fade, r_squared.sqrt())
-}
-
-/// `[1, K, rows * cols]`: 0, except a large negative number at keypoint 0's cells further than
-/// `radius` from the centre: added to the attention's logits, it confines keypoint 0 to the
-/// disc (a disc with no cell in it shifts all of keypoint 0's logits alike, which changes
-/// nothing).
-fn reference_mask(k: usize, rows: usize, cols: usize, radius: f64, device: &Device) -> Tensor<3> {
-    let (x, y) = pixel_grid(rows, cols, device);
-    let r = (x.powi_scalar(2) + y.powi_scalar(2)).sqrt(); // [1, 1, cells]
-    let outside = r.greater_elem(radius).float() * -1e4; // [1, 1, cells]
-    let rest = Tensor::zeros([1, k - 1, rows * cols], device);
-    Tensor::cat(vec![outside, rest], 1)
-}
-
-/// Keypoint attention `[n, K, cells]` over cells at `(x, y)` (`[1, 1, cells]` each) -> the
-/// expected angle of keypoints `1..K` measured from keypoint 0's expected direction about the
-/// centre (`[n, K - 1, 1]`; each cell's angle in `(-pi, pi]`, faded as in [`polar_grid`]), so
-/// a keypoint is continuous wherever it stays within half a turn of keypoint 0.
-fn relative_angles(attention: Tensor<3>, x: Tensor<3>, y: Tensor<3>, cut_fade: f64) -> Tensor<3> {
-    let [n, k, _] = attention.dims();
-    let reference = attention.clone().slice([0..n, 0..1]); // [n, 1, cells]
-    let x0 = (reference.clone() * x.clone()).sum_dim(2); // [n, 1, 1]
-    let y0 = (reference * y.clone()).sum_dim(2);
-    // The offset keeps the direction's gradient finite with keypoint 0 at the centre.
-    let norm = (x0.clone().powi_scalar(2) + y0.clone().powi_scalar(2))
-        .add_scalar(POLAR_FADE_RADIUS * POLAR_FADE_RADIUS)
-        .sqrt();
-    let (angle, _) = polar_grid(x, y, x0 / norm.clone(), y0 / norm, cut_fade); // [n, 1, cells]
-    (attention.slice([0..n, 1..k]) * angle).sum_dim(2)
 }
 
 /// Expected keypoint positions `x, y` (`[n, K, 1]` each, about the image centre) -> the angle
@@ -928,55 +660,33 @@ mod tests {
                 keypoints: 4,
                 hidden: 0,
                 polar: false,
-                with_cartesian: false,
                 pairwise_angles: false,
-                linear_base: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 8,
                 polar: true,
-                with_cartesian: false,
                 pairwise_angles: false,
-                linear_base: false,
-            },
-            // Polar keypoints and their (x, y): 16 inputs to the tanh layer or the output.
-            EncoderHead::SoftArgmax {
-                keypoints: 4,
-                hidden: 8,
-                polar: true,
-                with_cartesian: true,
-                pairwise_angles: false,
-                linear_base: false,
             },
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 0,
                 polar: true,
-                with_cartesian: true,
                 pairwise_angles: false,
-                linear_base: false,
             },
             EncoderHead::Mlp { hidden: 8 },
-            // h_0 from the base layer, h_1 from `out`: each is standardised.
             EncoderHead::SoftArgmax {
                 keypoints: 4,
                 hidden: 8,
                 polar: true,
-                with_cartesian: false,
                 pairwise_angles: true,
-                linear_base: true,
             },
         ];
-        // Every head as it is, then the polar tanh head (`heads[1]`) with keypoints 1..
-        // measured from keypoint 0.
-        let cases = heads.map(|head| (head, false)).into_iter();
-        for (head, relative_angles) in cases.chain([(heads[1], true)]) {
+        for head in heads {
             let config = EncoderConfig {
                 trunk_channels: [4, 4],
                 head,
                 keypoint_sharpness: 30.0,
-                relative_angles,
                 ..EncoderConfig::new(2)
             };
             let encoder = reinit_params(config.init(&device), 3);
@@ -996,103 +706,6 @@ mod tests {
         }
     }
 
-    #[test]
-    fn upsampled_keypoints_attend_over_finer_cells() {
-        let device = cpu_device();
-        let mut config = EncoderConfig {
-            trunk_channels: [4, 4],
-            head: EncoderHead::SoftArgmax {
-                keypoints: 4,
-                hidden: 8,
-                polar: true,
-                with_cartesian: false,
-                pairwise_angles: false,
-                linear_base: false,
-            },
-            keypoint_sharpness: 30.0,
-            ..EncoderConfig::new(2)
-        };
-        config.keypoint_upsample = 0;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("keypoint_upsample"), "{err}");
-        config.keypoint_upsample = 2;
-        assert!(config.validate().is_ok());
-        let fine = reinit_params(config.init(&device), 3);
-        config.keypoint_upsample = 1;
-        let coarse = reinit_params(config.init(&device), 3);
-        // A stride-1 second conv has the same weights' shapes and attends over 32x32 cells.
-        config.trunk_second_stride = 1;
-        let strided = reinit_params(config.init(&device), 3);
-        let h_strided = to_vec(strided.forward(frames(&device)));
-        assert_eq!(h_strided.len(), 48);
-        assert!(h_strided.iter().all(|x| x.is_finite()));
-        assert!(
-            h_strided
-                .iter()
-                .zip(&to_vec(coarse.forward(frames(&device))))
-                .any(|(a, b)| (a - b).abs() > 1e-6)
-        );
-        config.trunk_second_stride = 3;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("model.encoder.trunk_second_stride"), "{err}");
-        config.trunk_second_stride = 1;
-        config.head = EncoderHead::Mlp { hidden: 8 };
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("model.encoder.trunk_second_stride"), "{err}");
-        // Same weights, different attention grids: finite encodings that differ.
-        let (h_fine, h_coarse) = (
-            to_vec(fine.forward(frames(&device))),
-            to_vec(coarse.forward(frames(&device))),
-        );
-        assert_eq!(h_fine.len(), 48);
-        assert!(h_fine.iter().all(|x| x.is_finite()));
-        assert!(
-            h_fine
-                .iter()
-                .zip(&h_coarse)
-                .any(|(a, b)| (a - b).abs() > 1e-6)
-        );
-    }
-
-    #[test]
-    fn cartesian_and_relative_features_need_the_polar_head() {
-        let mut config = EncoderConfig::new(2);
-        config.head = EncoderHead::SoftArgmax {
-            keypoints: 4,
-            hidden: 8,
-            polar: false,
-            with_cartesian: true,
-            pairwise_angles: false,
-            linear_base: false,
-        };
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("with_cartesian"), "{err}");
-        config.head = EncoderHead::SoftArgmax {
-            keypoints: 4,
-            hidden: 8,
-            polar: true,
-            with_cartesian: true,
-            pairwise_angles: false,
-            linear_base: false,
-        };
-        assert!(config.validate().is_ok());
-        // Relative angles need polar keypoints, and a second keypoint to measure.
-        config.relative_angles = true;
-        assert!(config.validate().is_ok());
-        for (polar, keypoints) in [(false, 4), (true, 1)] {
-            config.head = EncoderHead::SoftArgmax {
-                keypoints,
-                hidden: 8,
-                polar,
-                with_cartesian: false,
-                pairwise_angles: false,
-                linear_base: false,
-            };
-            let err = config.validate().unwrap_err().to_string();
-            assert!(err.contains("model.encoder.relative_angles"), "{err}");
-        }
-    }
-
     /// The polar head's cut must fall in the sector the reacher's shoulder cannot reach (q0
     /// beyond +-160 degrees, to the image's left), so the angle of the upper arm about the
     /// centre is continuous and monotone over the whole joint range.
@@ -1105,9 +718,7 @@ mod tests {
                 keypoints: 4,
                 hidden: 0,
                 polar: true,
-                with_cartesian: false,
                 pairwise_angles: false,
-                linear_base: false,
             },
             ..EncoderConfig::new(2)
         };
@@ -1147,82 +758,6 @@ mod tests {
         );
         let margin = std::f32::consts::PI - 0.1;
         assert!(angles.iter().all(|a| a.abs() < margin), "{angles:?}");
-        // A cut put at 180 degrees (`model.encoder.polar_cut_deg`) is the gap's centre (world
-        // -x): the axis points along image +x.
-        let centred = encoder.with_polar_cut_at(180.0);
-        let [ax, ay] = centred.polar_axis().unwrap();
-        assert!(
-            (ax - 1.0).abs() < 1e-6 && ay.abs() < 1e-6,
-            "axis ({ax}, {ay})"
-        );
-        let mut bad = config.clone();
-        bad.polar_cut_deg = Some(f64::NAN);
-        let err = bad.validate().unwrap_err().to_string();
-        assert!(err.contains("model.encoder.polar_cut_deg"), "{err}");
-    }
-
-    /// Keypoint 1 straddles the fixed cut (half its attention just above -x, half just
-    /// below): its angle about the axis averages +-175 degrees to about 0, while seen from
-    /// keypoint 0 (at 170 degrees) it is the 10 degrees it really is, and turning the whole
-    /// scene leaves that unchanged.
-    #[test]
-    fn relative_angles_are_measured_from_keypoint_0_and_ignore_the_cut() {
-        let device = cpu_device();
-        let deg = |d: f32| d.to_radians();
-        let relative_for = |turn: f32| {
-            // Cells at radius 0.5: keypoint 0's one cell, then keypoint 1's two.
-            let cells = [170.0, 175.0, -175.0].map(|a: f32| deg(a + turn));
-            let t3 = |v: Vec<f32>| Tensor::<3>::from_data(TensorData::new(v, [1, 1, 3]), &device);
-            let x = t3(cells.iter().map(|a| 0.5 * a.cos()).collect());
-            let y = t3(cells.iter().map(|a| 0.5 * a.sin()).collect());
-            let attention = vec![1.0, 0.0, 0.0, 0.0, 0.5, 0.5];
-            let attention = Tensor::<3>::from_data(TensorData::new(attention, [1, 2, 3]), &device);
-            to_vec(relative_angles(attention, x, y, 0.0))[0]
-        };
-        let fade = 0.25 / (0.25 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
-        for turn in [0.0, 90.0, -135.0] {
-            let got = relative_for(turn);
-            assert!((got - deg(10.0) * fade).abs() < 1e-3, "turn {turn}: {got}");
-        }
-        let one = |v: f32| Tensor::<3>::from_data(TensorData::new(vec![v], [1, 1, 1]), &device);
-        let t3 = |v: Vec<f32>| Tensor::<3>::from_data(TensorData::new(v, [1, 1, 2]), &device);
-        let (x, y) = (
-            t3(vec![-0.5, -0.5]),
-            t3(vec![0.5 * deg(5.0).sin(), -0.5 * deg(5.0).sin()]),
-        );
-        let (absolute, _) = polar_grid(x, y, one(1.0), one(0.0), 0.0);
-        let absolute = to_vec(absolute);
-        assert!((absolute[0] + absolute[1]).abs() < 1e-3, "{absolute:?}");
-    }
-
-    /// Keypoint 0's logits are pushed down outside the disc, and nowhere else.
-    #[test]
-    fn the_reference_keypoint_is_confined_to_a_disc_about_the_centre() {
-        let device = cpu_device();
-        let mask = to_vec(reference_mask(3, 16, 16, 0.35, &device));
-        let (x, y) = pixel_grid(16, 16, &device);
-        let (x, y) = (to_vec(x), to_vec(y));
-        let mut inside = 0;
-        for cell in 0..256 {
-            let r = (x[cell].powi(2) + y[cell].powi(2)).sqrt();
-            let want = if r > 0.35 { -1e4 } else { 0.0 };
-            assert_eq!(mask[cell], want, "cell {cell} at radius {r}");
-            inside += usize::from(r <= 0.35);
-            assert_eq!(mask[256 + cell], 0.0);
-            assert_eq!(mask[512 + cell], 0.0);
-        }
-        // The central 3-cell-radius disc: cells whose centres lie within 0.35 of the centre.
-        assert_eq!(inside, 24);
-        let mut config = EncoderConfig::new(2);
-        config.relative_reference_radius = 0.35;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(err.contains("needs relative_angles"), "{err}");
-        config.relative_reference_radius = f64::NAN;
-        let err = config.validate().unwrap_err().to_string();
-        assert!(
-            err.contains("model.encoder.relative_reference_radius"),
-            "{err}"
-        );
     }
 
     #[test]
@@ -1264,39 +799,6 @@ mod tests {
         {
             assert!((got - want).abs() < 0.01, "{angle:?}");
         }
-    }
-
-    #[test]
-    fn latent_from_held_features_reshapes_only_the_head_after_the_keypoints() {
-        let device = cpu_device().autodiff();
-        let mut config = EncoderConfig::new(2);
-        config.head = EncoderHead::SoftArgmax {
-            keypoints: 4,
-            hidden: 8,
-            polar: true,
-            with_cartesian: false,
-            pairwise_angles: true,
-            linear_base: false,
-        };
-        let encoder = reinit_params(config.init(&device), 5);
-        let frames = Tensor::<4>::random(
-            [3, 3, 64, 64],
-            burn::tensor::Distribution::Uniform(-0.5, 0.5),
-            &device,
-        );
-        let (h, features) = encoder.forward_with_features(frames);
-        let features = features.expect("keypoint features");
-        // 4 angles, 4 radii and 6 pairwise angles.
-        assert_eq!(features.dims(), [3, 14]);
-        let again = encoder
-            .latent_from_features(features.detach())
-            .expect("keypoint head");
-        assert_eq!(to_vec(again.clone()), to_vec(h));
-        let grads = again.sum().backward();
-        let head = encoder.keypoints.as_ref().expect("keypoint head");
-        assert!(head.out.weight.grad(&grads).is_some());
-        assert!(head.features.weight.grad(&grads).is_none());
-        assert!(encoder.conv1.weight.grad(&grads).is_none());
     }
 
     #[test]
@@ -1345,9 +847,7 @@ mod tests {
             keypoints: 4,
             hidden: 8,
             polar,
-            with_cartesian: false,
             pairwise_angles,
-            linear_base: false,
         };
         let mut config = EncoderConfig {
             trunk_channels: [4, 4],
@@ -1391,90 +891,6 @@ mod tests {
         config.pairwise_init_scale = -1.0;
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("model.encoder.pairwise_init_scale"), "{err}");
-    }
-
-    #[test]
-    fn a_linear_base_takes_h0_from_the_angles_alone_and_the_rest_from_radii_and_pairs() {
-        let device = cpu_device();
-        let head = |pairwise_angles, hidden| EncoderHead::SoftArgmax {
-            keypoints: 4,
-            hidden,
-            polar: true,
-            with_cartesian: false,
-            pairwise_angles,
-            linear_base: true,
-        };
-        let mut config = EncoderConfig {
-            trunk_channels: [4, 4],
-            head: head(true, 8),
-            keypoint_sharpness: 30.0,
-            ..EncoderConfig::new(2)
-        };
-        assert!(config.validate().is_ok());
-        let encoder = reinit_params(config.init(&device), 5);
-        let keypoint_head = encoder.keypoints.as_ref().expect("keypoint head");
-        let dims = |layer: Option<&Linear>| layer.map(|l| l.weight.dims());
-        // 4 angles -> h_0; 4 radii and 6 pairs -> 8 tanh units -> h_1.
-        assert_eq!(dims(keypoint_head.base.as_ref()), Some([4, 1]));
-        assert_eq!(dims(keypoint_head.hidden.as_ref()), Some([10, 8]));
-        assert_eq!(dims(Some(&keypoint_head.out)), Some([8, 1]));
-        let h = to_vec(encoder.forward(frames(&device)));
-        assert_eq!(h.len(), 48);
-        assert!(h.iter().all(|x| x.is_finite()), "{h:?}");
-
-        // Features of 3 samples: angles, radii, pairs. Turning every angle moves h_0 by the
-        // base's weights times the turn and leaves h_1; changing radii and pairs leaves h_0.
-        let features: Vec<f32> = (0..3 * 14)
-            .map(|i| ((i * 37 % 11) as f32 - 5.0) / 7.0)
-            .collect();
-        let latent = |features: &[f32]| {
-            let features =
-                Tensor::<2>::from_data(TensorData::new(features.to_vec(), [3, 14]), &device);
-            to_vec(keypoint_head.latent_from_features(features))
-        };
-        let perturbed = |columns: std::ops::Range<usize>, by: f32| {
-            let mut f = features.clone();
-            for row in 0..3 {
-                for c in columns.clone() {
-                    f[row * 14 + c] += by;
-                }
-            }
-            latent(&f)
-        };
-        let h = latent(&features);
-        let base_weights = to_vec(keypoint_head.base.as_ref().expect("base").weight.val());
-        let turned = perturbed(0..4, 0.3);
-        for row in 0..3 {
-            let want = h[2 * row] + 0.3 * base_weights.iter().sum::<f32>();
-            assert!((turned[2 * row] - want).abs() < 1e-5, "{turned:?} {want}");
-            assert_eq!(turned[2 * row + 1], h[2 * row + 1]);
-        }
-        for changed in [perturbed(4..8, 0.3), perturbed(8..14, -0.4)] {
-            for row in 0..3 {
-                assert_eq!(changed[2 * row], h[2 * row]);
-                assert_ne!(changed[2 * row + 1], h[2 * row + 1]);
-            }
-        }
-
-        // `pairwise_init_scale` scales the 6 pair rows of the tanh layer, not the radii.
-        assert_only_pair_rows_scaled(&encoder, 4, 8);
-
-        // Refused by name without what it splits.
-        let refused = |config: &EncoderConfig| {
-            let err = config.validate().unwrap_err().to_string();
-            assert!(err.contains("model.encoder.head.linear_base"), "{err}");
-        };
-        for bad_head in [head(false, 8), head(true, 0)] {
-            refused(&EncoderConfig {
-                head: bad_head,
-                ..config.clone()
-            });
-        }
-        config.relative_angles = true;
-        refused(&config);
-        config.relative_angles = false;
-        config.latent_dim = 1;
-        refused(&config);
     }
 
     #[test]

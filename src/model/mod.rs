@@ -3,13 +3,11 @@
 //! Tensors live on a runtime-selected burn [`Device`]: [`cpu_device`] (burn-flex, pure Rust)
 //! for tests and CI, `Device::cuda(0)` with the `cuda` feature. The code never names a backend.
 
-mod decoder;
 mod dynamics;
 mod encoder;
 mod init;
 
-pub use decoder::FeatureDecoder;
-pub use dynamics::{Dynamics, DynamicsConfig, DynamicsInput, Transition};
+pub use dynamics::{Dynamics, DynamicsConfig, Transition};
 pub use encoder::{Encoder, EncoderConfig, EncoderHead};
 pub use init::reinit_params;
 
@@ -87,9 +85,6 @@ impl LatentEncoder for Encoder {
 pub struct ProclModel {
     pub encoder: Encoder,
     pub dynamics: Dynamics,
-    /// Training-only regulariser (`model.feature_decoder_width > 0`); last, so the encoder's
-    /// and the dynamics' initial weights do not depend on it.
-    pub feature_decoder: Option<FeatureDecoder>,
 }
 
 /// Architecture of a [`ProclModel`]; stored in the run's `config.json`.
@@ -97,15 +92,6 @@ pub struct ProclModel {
 pub struct ModelConfig {
     pub encoder: EncoderConfig,
     pub dynamics: DynamicsConfig,
-    /// Width of the feature decoder's two tanh layers (0: no decoder, the paper). It exists
-    /// for `loss.decoder_weight` and needs the keypoint head. Absent from the config.json of
-    /// runs without it, so earlier runs still load and compare equal.
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub feature_decoder_width: usize,
-}
-
-fn is_zero(width: &usize) -> bool {
-    *width == 0
 }
 
 impl ModelConfig {
@@ -114,7 +100,6 @@ impl ModelConfig {
         Self {
             encoder: EncoderConfig::new(du),
             dynamics: DynamicsConfig::new(du),
-            feature_decoder_width: 0,
         }
     }
 
@@ -124,15 +109,8 @@ impl ModelConfig {
         let model = ProclModel {
             encoder: self.encoder.init(device),
             dynamics: self.dynamics.init(device),
-            feature_decoder: self.encoder.keypoint_feature_count().and_then(|features| {
-                (self.feature_decoder_width > 0).then(|| {
-                    let (du, width) = (self.encoder.latent_dim, self.feature_decoder_width);
-                    FeatureDecoder::new(du, width, features, device)
-                })
-            }),
         };
         let mut model = reinit_params(model, seed);
-        model.feature_decoder = model.feature_decoder.map(FeatureDecoder::zero_output);
         if self.encoder.pairwise_init_scale != 1.0 {
             model.encoder = model
                 .encoder
@@ -149,12 +127,6 @@ impl ModelConfig {
             return Err(crate::Error::config(
                 "model.dynamics.latent_dim",
                 "must equal model.encoder.latent_dim",
-            ));
-        }
-        if self.feature_decoder_width > 0 && self.encoder.keypoint_feature_count().is_none() {
-            return Err(crate::Error::config(
-                "model.feature_decoder_width",
-                "decodes the keypoint head's features; the MLP head has none",
             ));
         }
         Ok(())
@@ -190,9 +162,6 @@ impl ProclModel {
         let mut model = self;
         model.encoder.latent_transform = apply(model.encoder.latent_transform);
         model.dynamics.latent_transform = apply(model.dynamics.latent_transform);
-        model.feature_decoder = model
-            .feature_decoder
-            .map(|decoder| decoder.reorient_input(p));
         model
     }
 }

@@ -8,7 +8,6 @@ mod envs;
 mod experiment;
 mod fetch;
 mod nvae;
-mod research;
 mod support;
 mod track;
 mod train;

@@ -38,9 +38,7 @@ fn tiny_config(steps: u64, checkpoint_every: u64) -> TrainConfig {
         keypoints: 8,
         hidden: 0,
         polar: false,
-        with_cartesian: false,
         pairwise_angles: false,
-        linear_base: false,
     };
     config.model.dynamics.hidden = 32;
     // The procl preset searches the latent orientation every 50 steps, which must divide
@@ -55,12 +53,12 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<f64>> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
-        Some("step,total,cpc,cons,curv,lyap,var,flat,turn,sep,dec,stretch,sign,seconds")
+        Some("step,total,cpc,cons,curv,lyap,var,sign,seconds")
     );
     lines
         .map(|line| {
             let mut row: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
-            assert_eq!(row.len(), 14, "bad row {line}");
+            assert_eq!(row.len(), 9, "bad row {line}");
             row.pop();
             row
         })
@@ -207,10 +205,7 @@ fn resumed_run_equals_uninterrupted_run() {
     let data = point_mass_data();
     let dir = tempfile::tempdir().unwrap();
     let (k, every) = (20, 10);
-    // With the feature decoder on, so its weights and Adam moments must round-trip as well.
-    let mut full = tiny_config(2 * k, every);
-    full.model.feature_decoder_width = 8;
-    full.loss.decoder_weight = 1.0;
+    let full = tiny_config(2 * k, every);
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
     train_into(&full, &data, &a, false);
 
@@ -245,10 +240,6 @@ fn resumed_run_equals_uninterrupted_run() {
     let (rows_a, rows_b) = (metrics_rows(&a), metrics_rows(&b));
     assert_eq!(rows_a.len(), 2 * k as usize);
     assert_eq!(rows_a[..k as usize], rows_b[..k as usize]);
-    // The decoder starts constant (it leaves all of the features' variance) and learns.
-    let dec = |row: &Vec<f64>| row[10];
-    assert!((dec(&rows_a[0]) - 1.0).abs() < 1e-5, "{:?}", rows_a[0]);
-    assert!(dec(&rows_a[2 * k as usize - 1]) < 0.98, "{rows_a:?}");
     // Weights, Adam moments and the orientation first (names what differs), then the losses.
     assert_same_checkpoint(&a, &b, "resumed vs uninterrupted");
     assert_eq!(rows_a, rows_b, "metrics differ (seconds column ignored)");
@@ -346,25 +337,6 @@ fn bad_configs_are_rejected_by_field_name() {
     assert!(err.contains("lerning_rate"), "unknown key not named: {err}");
     let err = config_err("method = \"pc3\"\n[loss]\nlambda_r = 1.0");
     assert!(err.contains("loss.lambda_r"), "{err}");
-    let err = config_err("[loss]\ndecoder_weight = 1.0");
-    assert!(
-        err.contains("loss.decoder_weight") && err.contains("model.feature_decoder_width"),
-        "{err}"
-    );
-    let err = config_err("[loss]\ndecoder_noise = -0.1");
-    assert!(err.contains("loss.decoder_noise"), "{err}");
-    let err = config_err("[loss]\nstretch_weight = -1.0");
-    assert!(err.contains("loss.stretch_weight"), "{err}");
-    for bad in ["0.0", "-0.5", "nan"] {
-        let err = config_err(&format!("[loss]\nstretch_ratio = {bad}"));
-        assert!(err.contains("loss.stretch_ratio"), "{bad}: {err}");
-    }
-    // The paper's MLP head has no keypoint features to compare the latent's steps with.
-    let err = config_err("preset = \"paper\"\n[loss]\nstretch_weight = 1.0");
-    assert!(
-        err.contains("loss.stretch_weight") && err.contains("soft-argmax"),
-        "{err}"
-    );
 
     // A non-finite learning rate given to `train` directly is refused before anything is
     // written.
