@@ -1,11 +1,12 @@
 //! One latent PD control step from a 64x64 frame (encode the new frame + PD law), on one
 //! thread, and beside it one CEM-MPC step on the same latent (encode + plan through the
-//! learned dynamics, horizon 10): the run-time cost ratio ProCL is about. Target (issue 5):
+//! learned dynamics, horizon 10): the run-time cost ratio ProCL is about. Target:
 //! PD <= 1 ms now, goal <= 0.3 ms. Weights are freshly initialised: the cost does not depend on
 //! their values.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use procl::control::{CemMpc, LatentPdPolicy, MpcConfig, MpcPolicy, PdController, Policy};
+use procl::baselines::mpc::{CemMpc, MpcConfig, MpcPolicy};
+use procl::control::{LatentPdPolicy, PdController, Policy};
 use procl::envs::{EnvKind, FRAME_BYTES, State};
 use procl::model::{ModelConfig, cpu_device};
 use procl::train::{Method, Preset, TrainConfig};

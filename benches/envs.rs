@@ -1,6 +1,6 @@
 //! Environment throughput: one step + one 64x64 render per iteration, single thread.
-//! Targets (issue 2): point mass >= 20,000 frames/s, reacher >= 10,000 frames/s per core;
-//! (issue 3) fetch >= 500 frames/s per core.
+//! Targets : point mass >= 20,000 frames/s, reacher >= 10,000 frames/s per core;
+//! fetch >= 500 frames/s per core.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use procl::envs::{EnvKind, FRAME_BYTES};

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// An environment name that procl does not know.
-    #[error("unknown environment `{0}` (expected one of: {known})", known = crate::envs::EnvKind::NAMES.join(", "))]
-    UnknownEnv(String),
+    #[error("unknown environment `{name}` (expected one of: {known})")]
+    UnknownEnv { name: String, known: String },
 
     /// A configuration or command-line value outside its valid range.
     #[error("invalid value for `{field}`: {message}")]

@@ -8,11 +8,11 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use procl::data::{CollectConfig, collect};
-use procl::demo::DemoConfig;
 use procl::envs::EnvKind;
 use procl::eval::ReachConfig;
-use procl::experiment::{Event, ExperimentConfig};
-use procl::pipeline::Outcome;
+use procl::runner::demo::DemoConfig;
+use procl::runner::experiment::{Event, ExperimentConfig};
+use procl::runner::stages::{Outcome, ThrottledLine};
 use procl::train::{Method, RunPaths};
 
 #[derive(Parser)]
@@ -33,7 +33,7 @@ enum Command {
         /// Environment: point-mass | reacher | fetch.
         #[arg(long)]
         env: String,
-        /// Number of transitions (default: spec.md 2's size for the env, 10,000; fetch 50,000).
+        /// Number of transitions (default: the paper's dataset size for the env, 10,000; fetch 50,000).
         #[arg(long)]
         transitions: Option<usize>,
         /// Steps per episode (default: the env's, 100; reacher 10).
@@ -48,6 +48,18 @@ enum Command {
         /// Replace an existing output file.
         #[arg(long)]
         force: bool,
+    },
+    /// Print the resolved configuration of a preset as TOML (a file `train --config` accepts).
+    Config {
+        /// Environment: point-mass | reacher | fetch.
+        #[arg(long)]
+        env: String,
+        /// procl | pc3 | nvae.
+        #[arg(long, default_value = "procl")]
+        method: String,
+        /// procl (the shipped design, docs/design.md) | paper (the paper as written).
+        #[arg(long, default_value = "procl")]
+        preset: String,
     },
     /// Validate a dataset and print what it holds.
     Info {
@@ -72,7 +84,8 @@ enum Command {
         /// Override the config's seed.
         #[arg(long)]
         seed: Option<u64>,
-        /// Override the config's number of steps.
+        /// Training steps (default: the environment's budget, which every published result
+        /// uses: 600 point-mass, 1200 reacher, 600 fetch).
         #[arg(long)]
         steps: Option<u64>,
         /// Continue the run in --out from its last checkpoint.
@@ -199,13 +212,12 @@ enum Command {
         /// Override the env's protocol horizon.
         #[arg(long)]
         horizon: Option<usize>,
-        /// Dataset transitions (default: spec.md 2's size for the env, 50,000 for fetch).
+        /// Dataset transitions (default: the paper's size for the env, 10,000; fetch 50,000).
         #[arg(long)]
         transitions: Option<usize>,
-        /// Steps per dataset episode (default 100, on which every shipped cell was measured;
-        /// `collect`'s reacher default is 10).
-        #[arg(long, default_value_t = 100)]
-        episode_len: usize,
+        /// Steps per dataset episode (default: `collect`'s for the env, 100; reacher 10).
+        #[arg(long)]
+        episode_len: Option<usize>,
         #[arg(long)]
         out: PathBuf,
     },
@@ -230,7 +242,17 @@ enum Command {
     },
 }
 
-fn progress_bar(len: u64, what: &str) -> ProgressBar {
+/// Progress of a long command: indicatif's bar on a terminal; otherwise (a log file, CI, a
+/// cluster job) a plain line on stderr every 30 s, with the step, the ETA and the latest
+/// message.
+struct Progress {
+    bar: ProgressBar,
+    lines: Option<std::cell::RefCell<(ThrottledLine, String)>>,
+    what: String,
+}
+
+fn progress_bar(len: u64, what: &str) -> Progress {
+    use std::io::IsTerminal;
     let bar = ProgressBar::new(len);
     bar.set_style(
         ProgressStyle::with_template(
@@ -239,7 +261,43 @@ fn progress_bar(len: u64, what: &str) -> ProgressBar {
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     bar.set_prefix(what.to_string());
-    bar
+    let lines = (!std::io::stderr().is_terminal()).then(|| {
+        let every = std::time::Duration::from_secs(30);
+        std::cell::RefCell::new((ThrottledLine::first_after(every), String::new()))
+    });
+    Progress {
+        bar,
+        lines,
+        what: what.trim().to_string(),
+    }
+}
+
+impl Progress {
+    fn set_length(&self, len: u64) {
+        self.bar.set_length(len);
+    }
+
+    fn set_message(&self, message: String) {
+        if let Some(lines) = &self.lines {
+            lines.borrow_mut().1 = message.clone();
+        }
+        self.bar.set_message(message);
+    }
+
+    fn set_position(&self, position: u64) {
+        self.bar.set_position(position);
+        if let Some(lines) = &self.lines {
+            let (throttle, message) = &mut *lines.borrow_mut();
+            let len = self.bar.length().unwrap_or(0);
+            if let Some(eta) = throttle.due(position, len) {
+                eprintln!("{}: {position}/{len}, eta {eta} {message}", self.what);
+            }
+        }
+    }
+
+    fn finish_and_clear(&self) {
+        self.bar.finish_and_clear();
+    }
 }
 
 /// A share as a percentage with two decimals, `-` when undefined.
@@ -275,6 +333,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 data.episodes(),
                 data.steps()
             );
+        }
+        Command::Config {
+            env,
+            method,
+            preset,
+        } => {
+            let env: EnvKind = env.parse()?;
+            let mut table = toml::Table::new();
+            table.insert("preset".into(), toml::Value::String(preset));
+            let config = procl::train::config_from_table(table, env, Some(method.parse()?))?;
+            print!("{}", toml::to_string(&config)?);
         }
         Command::Info { data } => {
             let dataset = procl::data::Dataset::load(&data)?;
@@ -334,10 +403,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let bar = progress_bar(config.steps, "train");
             let summary =
                 procl::train::train(&config, &dataset, &run, resume, &device, |step, v| {
-                    bar.set_position(step);
-                    if step % 10 == 0 {
+                    if step % 10 == 1 {
                         bar.set_message(v.to_string());
                     }
+                    bar.set_position(step);
                 })?;
             bar.finish_and_clear();
             println!(
@@ -379,7 +448,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             };
             let controller = match controller.as_deref().unwrap_or(own) {
                 name if name == own => procl::eval::Controller::Feedback,
-                "mpc" => procl::eval::Controller::Mpc(procl::control::MpcConfig {
+                "mpc" => procl::eval::Controller::Mpc(procl::baselines::mpc::MpcConfig {
                     horizon: mpc_horizon,
                     ..Default::default()
                 }),
@@ -485,7 +554,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 config.train_steps = steps;
             }
             let clock = std::time::Instant::now();
-            let result = procl::demo::run_demo(&config, |line| {
+            let result = procl::runner::demo::run_demo(&config, |line| {
                 println!("[{:>5.0} s] {line}", clock.elapsed().as_secs_f64())
             })?;
             println!();
@@ -526,12 +595,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             } else {
                 ExperimentConfig::paper(&out)
             };
-            let mut bar: Option<ProgressBar> = None;
+            let mut bar: Option<Progress> = None;
             let summary =
-                procl::experiment::run_experiment(
-                    &config,
-                    report_only,
-                    &mut |event| match event {
+                procl::runner::experiment::run_experiment(&config, report_only, &mut |event| {
+                    match event {
                         Event::Start(k, total, name) => println!("[{k}/{total}] {name}"),
                         Event::Progress(done, of) => {
                             let bar = bar.get_or_insert_with(|| progress_bar(of, "   "));
@@ -549,12 +616,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                                 }
                             }
                         }
-                    },
-                )?;
+                    }
+                })?;
             println!();
-            print!("{}", procl::experiment::markdown_table(&summary));
+            print!("{}", procl::runner::experiment::markdown_table(&summary));
             if let Some(readme) = readme {
-                procl::experiment::update_readme(
+                procl::runner::experiment::update_readme(
                     &readme,
                     Path::new("docs/img/experiment"),
                     &config,
@@ -582,7 +649,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             out,
         } => {
             let env: EnvKind = env.parse()?;
-            let mut grid = procl::ablate::Grid::from_toml(&grid)?;
+            let mut grid = procl::runner::ablate::Grid::from_toml(&grid)?;
             if let Some(name) = cell {
                 grid.cells.retain(|(n, _)| n == &name);
                 if grid.cells.is_empty() {
@@ -594,20 +661,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             }
             let defaults = CollectConfig::new(env, 0);
             let transitions = transitions.unwrap_or(defaults.transitions);
-            // Every cell of the shipped grids was measured on episodes of 100 steps (the
-            // reacher's turn-term cells read 10 steps ahead, which 10-step episodes cannot hold).
             let collect_config = CollectConfig {
                 transitions,
-                episode_len: episode_len.min(transitions),
+                episode_len: episode_len.unwrap_or(defaults.episode_len).min(transitions),
                 ..defaults
             };
             // Sizes are checked before the output folder is made.
             collect_config.episodes()?;
             std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
             let data_path = out.join(format!("{env}.npz"));
-            let (data, _) = procl::pipeline::collect_or_reuse(&collect_config, &data_path, |_| {})?;
-            let protocol = procl::pipeline::reach_protocol(env, episodes, horizon);
-            let results = procl::ablate::run_grid(
+            let (data, _) =
+                procl::runner::stages::collect_or_reuse(&collect_config, &data_path, |_| {})?;
+            let protocol = procl::runner::stages::reach_protocol(env, episodes, horizon);
+            let results = procl::runner::ablate::run_grid(
                 &grid,
                 &data,
                 seed_start..seed_start + seeds,
@@ -643,7 +709,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         } => {
             let env: EnvKind = env.parse()?;
             procl::check_writable(&out, force)?;
-            let image = procl::envs::render_strip(env, seed, frames, scale)
+            let image = procl::data::render_strip(env, seed, frames, scale)
                 .with_context(|| format!("rendering {env}"))?;
             image.save_png(&out, force)?;
             println!(

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Where a reacher run's goal-reaching failures are (docs/method.md, stops 17-18).
+"""Where a reacher run's goal-reaching failures are (docs/research/reacher.md).
 
 Reads an eval.json written by `procl eval` (it needs the per-episode `goal_configs` and
 `final_configs`) and, for the first method in it, counts the failed episodes (final distance
@@ -9,13 +9,13 @@ Reads an eval.json written by `procl eval` (it needs the per-episode `goal_confi
   - by goal shoulder angle: below -110, -110..110, above 110 degrees;
   - by where the arm stopped: within 5 degrees of a joint limit (shoulder +-160, wrist 0 or 160)
     or in free space, with how many of each ended more than 0.3 rad from the goal;
-  - where the eval.json has them (since stop 25), by the latent: whether the arm still moved
+  - where the eval.json has them, by the latent: whether the arm still moved
     (joint speed > 0.05 rad/s after the last step), and how far its last latent was from the
     goal's as a share of the first's (< 1%: PD had reached h*, so the latent folds two
     configurations onto one h), and how many end in a valley: the last latent less than 0.02
-    units from h* per radian of remaining joint error (docs/method.md, reacher stop 30);
+    units from h* per radian of remaining joint error;
   - the failures' remaining joint error (0.1-0.3 rad: near misses, or further), and the goals
-    with the wrist under 0.6 rad (the straight wrist, where seed 2 of stop 30 stopped short).
+    with the wrist under 0.6 rad (the straight wrist).
 Standard library only:
   python3 tools/reach_failures.py runs/R/eval.json
 """

@@ -5,10 +5,9 @@ use std::time::Instant;
 
 use burn::tensor::Device;
 
-use super::{FeedbackLaw, PdController, Pid};
+use super::{FeedbackLaw, PdController};
 use crate::envs::State;
 use crate::model::{Encoder, LatentEncoder, frames_to_tensor, to_vec};
-use crate::nvae::GaussianEncoder;
 
 /// A tracking target for the next action: the reference's latent `(h*, v*)` for latent
 /// policies, its true state for the oracle.
@@ -56,9 +55,6 @@ pub struct LatentPolicy<L, E = Encoder> {
 
 /// Latent PD on ProCL's (or PC3's) encoder.
 pub type LatentPdPolicy = LatentPolicy<PdController>;
-
-/// PID on the NewtonianVAE's posterior mean.
-pub type LatentPidPolicy = LatentPolicy<Pid, GaussianEncoder>;
 
 impl<L: FeedbackLaw, E: LatentEncoder> LatentPolicy<L, E> {
     pub fn new(encoder: E, device: Device, law: L, dt: f64) -> Self {

@@ -2,11 +2,9 @@
 //! one on camera frames.
 
 mod latent;
-mod mpc;
 mod pid;
 
-pub use latent::{LatentPdPolicy, LatentPidPolicy, LatentPolicy, OraclePdPolicy, Policy, Target};
-pub use mpc::{CemMpc, LatentStep, MpcConfig, MpcPolicy, cem_plan};
+pub use latent::{LatentPdPolicy, LatentPolicy, OraclePdPolicy, Policy, Target};
 pub use pid::{FeedbackLaw, Pid, PidController};
 
 /// PD control `u = Kp (h* - h) + Kd (v* - v)` with diagonal gains, clipped to [-1, 1].

@@ -1,4 +1,4 @@
-//! Random-control data collection (spec.md 2): uniform actions held for 1-5 steps, episodes
+//! Random-control data collection (paper section IV): uniform actions held for 1-5 steps, episodes
 //! from uniformly random configurations at rest, every episode seeded from (seed, episode).
 
 use ndarray::{Array3, Array5};
@@ -25,7 +25,7 @@ pub struct CollectConfig {
 }
 
 impl CollectConfig {
-    /// spec.md 2 defaults for `env`: 10,000 transitions (Fetch: 50,000) in episodes of 100 steps
+    /// The paper's defaults for `env`: 10,000 transitions (Fetch: 50,000) in episodes of 100 steps
     /// (reacher: 10 steps).
     pub fn new(env: EnvKind, seed: u64) -> Self {
         Self {
@@ -39,7 +39,7 @@ impl CollectConfig {
             // 21.7% of a wrist limit (6.3% and 12.5% if uniform). CPC spreads the latent over
             // where the frames are, and the preset's latent hooked at the shoulder's ends, where
             // PD failed most goals. Episodes of 10 steps from uniform starts give 6.2% and 15.5%,
-            // and the preset reached 84.5% on seed 0 against 74% (docs/method.md, reacher stop 27).
+            // and the preset reached 84.5% on seed 0 against 74% (docs/design.md, "Reacher").
             episode_len: match env {
                 EnvKind::Reacher => 10,
                 EnvKind::PointMass | EnvKind::Fetch => 100,
@@ -172,6 +172,40 @@ pub fn collect(config: &CollectConfig, mut progress: impl FnMut(usize)) -> Resul
         progress((episode + 1) * steps);
     }
     recording.finish(env.control_dt_s(), config.seed, "random-control".into())
+}
+
+/// Steps between the frames of a [`render_strip`].
+pub const STRIP_STRIDE: usize = 10;
+
+/// Renders `frames` frames (every [`STRIP_STRIDE`]th step) of a seeded random-control episode
+/// side by side, each upscaled `scale` times: what a model trained on `kind` sees.
+pub fn render_strip(
+    kind: EnvKind,
+    seed: u64,
+    frames: usize,
+    scale: usize,
+) -> Result<crate::RgbImage> {
+    if frames == 0 || scale == 0 {
+        return Err(Error::config("frames/scale", "must be at least 1"));
+    }
+    let mut config = CollectConfig::new(kind, seed);
+    config.transitions = ((frames - 1) * STRIP_STRIDE).max(2);
+    config.episode_len = config.transitions;
+    let data = collect(&config, |_| {})?;
+    let side = FRAME_PX * scale;
+    let gap = scale.max(1);
+    let mut image = crate::RgbImage::new(frames * side + (frames - 1) * gap, side);
+    image.pixels.fill(255);
+    for k in 0..frames {
+        image.blit_scaled(
+            data.frame(0, k * STRIP_STRIDE),
+            FRAME_PX,
+            k * (side + gap),
+            0,
+            scale,
+        );
+    }
+    Ok(image)
 }
 
 #[cfg(test)]

@@ -1,4 +1,4 @@
-//! The dataset on disk: one `.npz` readable by `numpy.load` (spec.md 2), validated on load.
+//! The dataset on disk: one `.npz` readable by `numpy.load`, validated on load.
 //!
 //! Arrays: `obs` u8 `[episodes, T+1, 64, 64, 3]`, `actions` f32 `[episodes, T, du]`,
 //! `states` f32 `[episodes, T+1, 2 dq]` (`q` then `qd`), `meta` u8 `[n]` holding the metadata as

@@ -1,19 +1,19 @@
 //! Fetch-3D: gym's FetchReach with the end effector driven by acceleration, the 7-DOF arm posed
-//! by inverse kinematics and the scene ray cast in 3D (spec.md 1.3).
+//! by inverse kinematics and the scene ray cast in 3D.
 
 use super::fetch_arm::{ARM_JOINTS, ArmPose, IkConfig, IkSolution, forward_kinematics};
 use super::render3d::{Lighting, Object, OrbitCamera, Picked, RayCaster, Solid, Vec3};
 use super::{Env, EnvKind, Frame, State, clip_action, validate_state};
 use crate::error::{Error, Result};
 
-/// Dynamics, scene and rendering parameters (defaults from FetchReach / spec.md 1.3).
+/// Dynamics, scene and rendering parameters (defaults from FetchReach).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FetchConfig {
     /// Control period, seconds.
     pub control_dt_s: f64,
     /// End-effector acceleration at full control, m/s^2. 0.5 makes a 0.3 m workspace crossing
     /// take 1.1 s from rest at full throttle and 1.55 s rest to rest (accelerate, then brake),
-    /// inside spec.md's 1-2 s; top speeds stay near 0.4 m/s, 1.6 cm (~1 px) per step.
+    /// inside 1-2 s; top speeds stay near 0.4 m/s, 1.6 cm (~1 px) per step.
     pub max_accel_m_s2: f64,
     /// The workspace box (FetchReach's goal box), lower and upper corners, metres.
     pub workspace_lo_m: [f64; 3],

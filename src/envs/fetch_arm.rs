@@ -1,4 +1,4 @@
-//! The Fetch 7-DOF arm: forward kinematics of the chain FetchReach compiles (spec.md 1.3) and an
+//! The Fetch 7-DOF arm: forward kinematics of the chain FetchReach compiles and an
 //! inverse kinematics that places the grip site at a point with the gripper pointing down.
 //!
 //! The IK is a Levenberg-Marquardt least-squares solve over the joint angles, always started from
@@ -25,7 +25,7 @@ pub struct ArmJoint {
     pub limits_rad: Option<[f64; 2]>,
 }
 
-/// spec.md 1.3's table; the first offset is the shoulder pan link's world position.
+/// FetchReach's kinematic table; the first offset is the shoulder pan link's world position.
 pub const FETCH_ARM: [ArmJoint; ARM_JOINTS] = [
     ArmJoint {
         name: "shoulder_pan",
@@ -76,7 +76,7 @@ pub const GRIPPER_OFFSET_M: f64 = 0.1664;
 /// Grip site (the end-effector point p) along the gripper link's x axis, m.
 pub const GRIP_SITE_OFFSET_M: f64 = 0.02;
 
-/// The joint angles FetchReach holds after reset (spec.md 1.3), rad.
+/// The joint angles FetchReach holds after reset, rad.
 pub const RESET_Q: [f64; ARM_JOINTS] = [0.0097, -0.8257, -0.0031, 1.4441, 0.0026, 0.953, 0.0059];
 
 /// The gripper orientation FetchReach's mocap holds: a quarter turn about world y, so the
@@ -407,7 +407,7 @@ mod tests {
             .all(|(qi, j)| j.limits_rad.is_none_or(|[lo, hi]| *qi >= lo && *qi <= hi))
     }
 
-    /// spec.md 1.3: FetchReach's reset pose puts the grip site at (1.3418, 0.7491, 0.5347)
+    /// FetchReach's reset pose puts the grip site at (1.3418, 0.7491, 0.5347)
     /// (rounded to 0.1 mm), gripper pointing down.
     #[test]
     fn forward_kinematics_matches_the_reset_pose() {

@@ -76,7 +76,10 @@ impl std::str::FromStr for EnvKind {
             "point-mass" | "point_mass" | "pointmass" => Ok(EnvKind::PointMass),
             "reacher" => Ok(EnvKind::Reacher),
             "fetch" | "fetch-3d" | "fetch-reach" => Ok(EnvKind::Fetch),
-            other => Err(Error::UnknownEnv(other.to_string())),
+            other => Err(Error::UnknownEnv {
+                name: other.to_string(),
+                known: EnvKind::NAMES.join(", "),
+            }),
         }
     }
 }
@@ -139,7 +142,7 @@ pub trait Env: Send {
             .sqrt()
     }
     /// Distance (m) between the fingertip's positions at two configurations, for an env whose
-    /// configuration distance is not already one in metres: the reacher (spec.md 1.2 reports it
+    /// configuration distance is not already one in metres: the reacher (the paper reports it
     /// beside the joint-space distance). `None` elsewhere.
     fn fingertip_distance_m(&self, _a: &[f64], _b: &[f64]) -> Option<f64> {
         None
@@ -194,38 +197,4 @@ pub(crate) fn sample_box(rng: &mut ChaCha8Rng, ranges: &[[f64; 2]]) -> Vec<f64> 
         .iter()
         .map(|&[lo, hi]| rng.random_range(lo..=hi))
         .collect()
-}
-
-/// Steps between the frames of a [`render_strip`].
-pub const STRIP_STRIDE: usize = 10;
-
-/// Renders `frames` frames (every [`STRIP_STRIDE`]th step) of a seeded random-control episode
-/// side by side, each upscaled `scale` times: what a model trained on `kind` sees.
-pub fn render_strip(
-    kind: EnvKind,
-    seed: u64,
-    frames: usize,
-    scale: usize,
-) -> Result<crate::RgbImage> {
-    if frames == 0 || scale == 0 {
-        return Err(Error::config("frames/scale", "must be at least 1"));
-    }
-    let mut config = crate::data::CollectConfig::new(kind, seed);
-    config.transitions = ((frames - 1) * STRIP_STRIDE).max(2);
-    config.episode_len = config.transitions;
-    let data = crate::data::collect(&config, |_| {})?;
-    let side = FRAME_PX * scale;
-    let gap = scale.max(1);
-    let mut image = crate::RgbImage::new(frames * side + (frames - 1) * gap, side);
-    image.pixels.fill(255);
-    for k in 0..frames {
-        image.blit_scaled(
-            data.frame(0, k * STRIP_STRIDE),
-            FRAME_PX,
-            k * (side + gap),
-            0,
-            scale,
-        );
-    }
-    Ok(image)
 }

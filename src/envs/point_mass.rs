@@ -5,7 +5,7 @@ use super::render2d::{Canvas, Shape, TopDownCamera};
 use super::{Env, EnvKind, Frame, State, clip_action, validate_state};
 use crate::error::Result;
 
-/// Physical and visual parameters of the point mass (defaults from dm_control / spec.md 1.1).
+/// Physical and visual parameters of the point mass (defaults from dm_control).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct PointMassConfig {
     /// Control period and MuJoCo timestep, seconds (one physics step per control step).
@@ -148,7 +148,7 @@ mod tests {
         (a - b).abs() <= tol
     }
 
-    /// spec.md 1.1: u = (1, 0) from rest at the origin, MuJoCo 3.17 (also reproduced with
+    /// MuJoCo's reference: u = (1, 0) from rest at the origin, MuJoCo 3.17 (also reproduced with
     /// MuJoCo 4.0 by tools/mujoco_reference.py).
     #[test]
     fn step_response_matches_mujoco() {

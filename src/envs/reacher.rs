@@ -5,7 +5,7 @@ use super::render2d::{Canvas, Shape, TopDownCamera};
 use super::{Env, EnvKind, Frame, State, clip_action, validate_state};
 use crate::error::Result;
 
-/// Physical and visual parameters of the reacher (defaults from dm_control / spec.md 1.2).
+/// Physical and visual parameters of the reacher (defaults from dm_control).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ReacherConfig {
     /// Control period and MuJoCo timestep, seconds.
@@ -255,7 +255,7 @@ mod tests {
         assert_eq!(env.fingertip_distance_m(&bent, &bent), Some(0.0));
     }
 
-    /// spec.md 1.2 (MuJoCo 3.17; MuJoCo 4.0 agrees, tools/mujoco_reference.py).
+    /// MuJoCo's reference (MuJoCo 3.17; MuJoCo 4.0 agrees, tools/mujoco_reference.py).
     #[test]
     fn mass_matrix_at_zero_matches_mujoco() {
         let env = Reacher::new(ReacherConfig::default());

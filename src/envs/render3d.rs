@@ -804,7 +804,7 @@ mod tests {
         (a - b).norm() < tol
     }
 
-    /// FetchReach's camera (spec.md 1.3).
+    /// FetchReach's camera.
     fn fetch_reach_camera() -> OrbitCamera {
         OrbitCamera {
             distance_m: 2.5,

@@ -28,7 +28,7 @@ pub struct LatentDiagnostics {
     pub knn_r2: f64,
     /// Share of the grid's far-apart pairs that the latent folds together (see
     /// [`folded_share`]): 0 for an injective map whatever its shape. The 5-NN R^2 averages
-    /// folds away when they are small; PD stops on them (docs/method.md, stop 25).
+    /// folds away when they are small; PD stops on them (docs/design.md, "Diagnostics").
     #[serde(default)]
     pub folded_share: f64,
     /// Share of the grid's pairs of configurations whose latent PD torque at rest pushes away
@@ -43,7 +43,7 @@ pub struct LatentDiagnostics {
     /// Share of the grid's interior cells whose local map is nearly singular: its smaller
     /// singular value under [`NEAR_SINGULAR`] of its larger, so a valley of configurations
     /// shares one latent and PD stops anywhere along it (the reacher's near misses with the
-    /// wrist straight; docs/method.md, reacher stop 30). `None` unless `q` and `h` are 2-D.
+    /// wrist straight; docs/design.md, "Diagnostics"). `None` unless `q` and `h` are 2-D.
     #[serde(default)]
     pub near_singular_share: Option<f64>,
     /// Grid points encoded.

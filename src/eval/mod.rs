@@ -1,4 +1,4 @@
-//! Evaluation: the goal-reaching protocol (spec.md 4), trajectory tracking, their metrics,
+//! Evaluation: the goal-reaching protocol (paper section IV-A), trajectory tracking, their metrics,
 //! plots and animations.
 
 mod latent_map;
@@ -15,11 +15,11 @@ pub use plots::{
     register_font, save_episode_gif, save_latent_plot, save_reach_plot, save_track_plot,
 };
 pub use reach::{
-    EpisodeRecord, MethodSummary, ReachConfig, ReachReport, evaluate_reach, reach_tasks,
-    run_episode, summarise,
+    EpisodeRecord, MethodSummary, ReachConfig, ReachReport, TrackSummary, evaluate_reach,
+    reach_tasks, run_episode, summarise,
 };
 pub use run::{
     Controller, EvalOutputs, LATENT_MAP, RunPolicy, evaluate_oracle, evaluate_run,
     evaluate_run_with, run_policy, write_diagnostics,
 };
-pub use track::{Reference, TRACK_FIGURE, TrackReport, TrackSummary, track_episode, track_run};
+pub use track::{Reference, TRACK_FIGURE, TrackReport, track_episode, track_run};

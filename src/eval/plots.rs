@@ -324,8 +324,8 @@ pub fn save_track_plot(
     references: &[Vec<Vec<f64>>],
     latent_runs: &[EpisodeRecord],
     oracle_runs: &[EpisodeRecord],
-    methods: &[super::track::TrackSummary],
-    protocol: &super::ReachConfig,
+    methods: &[super::reach::TrackSummary],
+    protocol: &super::reach::ReachConfig,
 ) -> Result<()> {
     const SHOWN: usize = 4;
     let plane = |q: &Vec<f64>| (q[0], q.get(1).copied().unwrap_or(0.0));
@@ -387,8 +387,8 @@ pub fn save_track_plot(
 /// The per-step tracking error of each method (mean +- std, log y) on `area`.
 fn draw_tracking_errors(
     area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
-    methods: &[super::track::TrackSummary],
-    protocol: &super::ReachConfig,
+    methods: &[super::reach::TrackSummary],
+    protocol: &super::reach::ReachConfig,
 ) -> std::result::Result<(), String> {
     let summaries: Vec<MethodSummary> = methods.iter().map(|m| m.per_step.clone()).collect();
     let legend = |m: &MethodSummary| {

@@ -22,7 +22,7 @@ pub struct ReachConfig {
 }
 
 impl ReachConfig {
-    /// spec.md 4 / issue 9: 50 episodes of 500 steps (10 s); point mass succeeds below 0.02 m,
+    /// 50 episodes of 500 steps (10 s); point mass succeeds below 0.02 m,
     /// reacher below 0.1 rad of joint-space distance. Fetch: 250 steps (10 s at dt 0.04; the
     /// oracle needs 2.2 s) and FetchReach's goal tolerance, 0.05 m.
     pub fn for_env(env: EnvKind, seed: u64) -> Self {
@@ -308,4 +308,19 @@ pub fn evaluate_reach(
         progress(k + 1);
     }
     Ok(records)
+}
+
+/// Tracking results of one method over all demonstrations.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrackSummary {
+    /// Per-step error (mean, std over demonstrations), final error, and the fraction of
+    /// demonstrations whose final error is under the env's goal-reaching threshold.
+    #[serde(flatten)]
+    pub per_step: MethodSummary,
+    /// Mean error over every step of every demonstration.
+    pub mean_error: f64,
+    /// Root mean square of the same.
+    pub rms_error: f64,
+    /// Largest error seen.
+    pub max_error: f64,
 }

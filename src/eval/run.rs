@@ -7,9 +7,11 @@ use burn::tensor::Device;
 
 use super::plots::{save_episode_gif, save_latent_plot, save_reach_plot};
 use super::reach::{MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise};
+use crate::baselines::mpc::{CemMpc, MpcConfig, MpcPolicy};
+use crate::baselines::nvae::LatentPidPolicy;
 use crate::control::{
-    CemMpc, FeedbackLaw, LatentPdPolicy, LatentPidPolicy, LatentPolicy, MpcConfig, MpcPolicy,
-    OraclePdPolicy, PdController, Pid, Policy, oracle_gains,
+    FeedbackLaw, LatentPdPolicy, LatentPolicy, OraclePdPolicy, PdController, Pid, Policy,
+    oracle_gains,
 };
 use crate::error::{Error, Result};
 use crate::model::{LatentEncoder, cpu_device};
@@ -108,7 +110,7 @@ pub fn run_policy(
 
 /// Computes the latent diagnostics of a trained run and writes `latent_map.png` and
 /// `diagnostics.json` into its folder.
-pub fn write_diagnostics(run: &RunPaths) -> Result<super::LatentDiagnostics> {
+pub fn write_diagnostics(run: &RunPaths) -> Result<super::latent_map::LatentDiagnostics> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
     let png = run.dir.join(LATENT_MAP);
@@ -116,7 +118,8 @@ pub fn write_diagnostics(run: &RunPaths) -> Result<super::LatentDiagnostics> {
         TrainedModel::Procl(model) => &model.encoder,
         TrainedModel::Nvae(model) => &model.encoder,
     };
-    let diagnostics = super::latent_diagnostics(config.env, encoder, &device, Some(&png))?;
+    let diagnostics =
+        super::latent_map::latent_diagnostics(config.env, encoder, &device, Some(&png))?;
     let path = run.dir.join("diagnostics.json");
     crate::fsutil::write_json(&path, &diagnostics)?;
     Ok(diagnostics)

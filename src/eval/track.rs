@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use burn::tensor::Device;
 
 use super::plots::save_track_plot;
-use super::reach::{EpisodeRecord, MethodSummary, ReachConfig, summarise};
+use super::reach::{EpisodeRecord, ReachConfig, TrackSummary, summarise};
 use super::run::run_policy;
 use crate::control::{OraclePdPolicy, Policy, Target, oracle_gains};
 use crate::data::Dataset;
@@ -122,21 +122,6 @@ pub fn track_episode(
         state = sim.state();
     }
     Ok(record)
-}
-
-/// Tracking results of one method over all demonstrations.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct TrackSummary {
-    /// Per-step error (mean, std over demonstrations), final error, and the fraction of
-    /// demonstrations whose final error is under the env's goal-reaching threshold.
-    #[serde(flatten)]
-    pub per_step: MethodSummary,
-    /// Mean error over every step of every demonstration.
-    pub mean_error: f64,
-    /// Root mean square of the same.
-    pub rms_error: f64,
-    /// Largest error seen.
-    pub max_error: f64,
 }
 
 /// The figure [`track_run`] draws into a run folder.

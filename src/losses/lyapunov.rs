@@ -51,9 +51,6 @@ pub fn lyapunov_risk(
     relu((after - before) / dt_r).mean().reshape([1])
 }
 
-/// The encodings of one batch of samples `(i_{t-1}, i_t, u_t, i_{t+1})` and the random draws
-/// the losses use (drawn by the caller from its seeded RNG, so tests can pin them).
-
 /// The factor `c / std(h_t)` (`[1, du]`, gradient through the std) that the Lyapunov risk
 /// multiplies every latent of a sample by under `loss.risk_latent_std = c`; `None` when off.
 pub(crate) fn risk_scale(config: &LossConfig, h_now: Tensor<2>) -> Option<Tensor<2>> {
@@ -192,5 +189,4 @@ mod tests {
         assert_eq!(risk(0.03, 1.5, 0.0), 0.0);
         assert_eq!(risk(0.004, 0.2, 0.0), 0.0);
     }
-
 }

@@ -6,8 +6,8 @@ mod lyapunov;
 mod pc3;
 mod regularisers;
 
-pub use lyapunov::{hindsight_targets, lyapunov_risk};
 pub(crate) use lyapunov::risk_scale;
+pub use lyapunov::{hindsight_targets, lyapunov_risk};
 pub use pc3::{consistency_loss, cpc_loss, curvature_loss, pairwise_gaussian_log_density};
 pub use regularisers::{action_response_sign, variance_hinge};
 
@@ -325,6 +325,53 @@ impl LossTerms {
     }
 }
 
+/// One training step's logged values, named as metrics.csv's columns; the first is the total
+/// loss.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepValues {
+    pub names: &'static [&'static str],
+    pub values: Vec<f64>,
+}
+
+impl StepValues {
+    /// The total loss minimised.
+    pub fn total(&self) -> f64 {
+        self.values.first().copied().unwrap_or(f64::NAN)
+    }
+
+    /// The value of the column `name`.
+    pub fn get(&self, name: &str) -> Option<f64> {
+        let k = self.names.iter().position(|n| *n == name)?;
+        self.values.get(k).copied()
+    }
+
+    pub fn is_finite(&self) -> bool {
+        self.values.iter().all(|x| x.is_finite())
+    }
+}
+
+impl std::fmt::Display for StepValues {
+    /// `total 1.2345 cpc 0.6789 ...`
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let pairs: Vec<String> = self
+            .names
+            .iter()
+            .zip(&self.values)
+            .map(|(name, value)| format!("{name} {value:.4}"))
+            .collect();
+        f.write_str(&pairs.join(" "))
+    }
+}
+
+impl From<LossValues> for StepValues {
+    fn from(values: LossValues) -> Self {
+        Self {
+            names: &LOSS_NAMES,
+            values: values.as_array().to_vec(),
+        }
+    }
+}
+
 /// The sign term of one batch, or 0 when it is off.
 fn sign_term(
     config: &LossConfig,
@@ -441,7 +488,14 @@ pub fn procl_loss(
         config.kd,
     );
     let dt_r = config.lyapunov_dt_s.unwrap_or(dt);
-    let lyap = lyapunov_risk((h_now, v_now), z_after, z_target, config.q_h, config.q_v, dt_r);
+    let lyap = lyapunov_risk(
+        (h_now, v_now),
+        z_after,
+        z_target,
+        config.q_h,
+        config.q_v,
+        dt_r,
+    );
 
     let pc3 = cpc.clone() * config.lambda_cpc
         + cons.clone() * config.lambda_cons

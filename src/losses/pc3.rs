@@ -1,8 +1,8 @@
 //! The PC3 terms (paper section II-C, eqs. 4-7): CPC, consistency and curvature of the latent
 //! dynamics' Gaussian transition density.
 
-use burn::tensor::activation::log_softmax;
 use burn::tensor::Tensor;
+use burn::tensor::activation::log_softmax;
 
 use crate::model::Dynamics;
 
@@ -68,7 +68,6 @@ pub fn curvature_loss(
     residual.powi_scalar(2).sum_dim(1).mean().reshape([1])
 }
 
-
 #[cfg(test)]
 mod tests {
     //! Every pinned number below was computed independently of this crate (by hand or with the
@@ -77,7 +76,7 @@ mod tests {
     use burn::tensor::{Device, Tensor};
 
     use super::*;
-    use crate::losses::test_support::{assert_close, scalar, t2, t1};
+    use crate::losses::test_support::{assert_close, scalar, t1, t2};
     use crate::model::{DynamicsConfig, cpu_device, reinit_params, to_vec};
 
     #[test]
@@ -100,7 +99,6 @@ mod tests {
             -20.119127066,
         ];
         assert_close(&to_vec(out), &want, 1e-5, "log density");
-
     }
 
     /// An asymmetric matrix, so row-wise and column-wise softmax give different losses.

@@ -207,7 +207,6 @@ mod tests {
         assert!(scalar(variance_hinge(h, 0.2)).abs() < 1e-6);
     }
 
-
     /// Three groups of 4 samples along a line in `h` (turned by `(c, s)`), each with the
     /// actions (1,0), (0,1), (-1,0), (0,-1) (so `x^T x = 2 I` per group), responding by
     /// `a = u B_g`, the response turned with the latent; rows shuffled, so the groups come
@@ -248,13 +247,7 @@ mod tests {
         let device = cpu_device().autodiff();
         let sign = |maps, regions| {
             let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
-            scalar(action_response_sign(
-                a,
-                u,
-                h,
-                regions,
-                0.0,
-            ))
+            scalar(action_response_sign(a, u, h, regions, 0.0))
         };
         let want = 2.0 * 2f64.sqrt();
         assert!((sign([IDENTITY, IDENTITY, MINUS], 3) - want).abs() < 1e-4);
@@ -293,13 +286,7 @@ mod tests {
         let device = cpu_device().autodiff();
         let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
         let a = a.require_grad();
-        let loss = action_response_sign(
-            a.clone(),
-            u.clone(),
-            h,
-            3,
-            singular_floor,
-        );
+        let loss = action_response_sign(a.clone(), u.clone(), h, 3, singular_floor);
         let grads = loss.backward();
         let got = to_vec(a.grad(&grads).expect("gradient of a"));
         let u = to_vec(u);
@@ -328,13 +315,7 @@ mod tests {
         let faint = [[1.0f32, 0.0], [0.0, 0.1]];
         let sign = |maps, turn, floor| {
             let (h, u, a) = regional_responses(maps, turn, &device);
-            scalar(action_response_sign(
-                a,
-                u,
-                h,
-                3,
-                floor,
-            ))
+            scalar(action_response_sign(a, u, h, 3, floor))
         };
         let scale = 1.49f64.sqrt() / 2.0;
         let want = (0.5 - 0.1 / scale) / 3.0;
@@ -366,5 +347,4 @@ mod tests {
             );
         }
     }
-
 }

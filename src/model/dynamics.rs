@@ -143,7 +143,11 @@ impl Dynamics {
         let mean = Transition { h_next, v_next };
 
         let tangent_out = tangent.map(|(th, tv, tu)| {
-            let t_inputs = vec![self.unoriented(th.clone()), self.unoriented(tv.clone()) * dt, tu];
+            let t_inputs = vec![
+                self.unoriented(th.clone()),
+                self.unoriented(tv.clone()) * dt,
+                tu,
+            ];
             let tx = Tensor::cat(t_inputs, 1);
             let t1 = dense_tangent(&self.fc1, tx) * pre1.greater_elem(0.0).float();
             let t2 = dense_tangent(&self.fc2, t1) * pre2.greater_elem(0.0).float();

@@ -44,7 +44,7 @@ pub enum EncoderHead {
     },
 }
 
-/// Encoder architecture. Defaults sized for 2 CPU cores (spec.md 3).
+/// Encoder architecture. Defaults sized for 2 CPU cores.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EncoderConfig {
     /// Dimension of `h` (= action dimension du).

@@ -1,7 +1,8 @@
 //! Control and evaluation: the oracle upper bound, the closed loop's encoding budget, the
 //! eval.json schema, and the demo end to end on a tiny budget (the CI smoke test).
 
-use procl::control::{LatentPdPolicy, MpcConfig, PdController, Policy};
+use procl::baselines::mpc::MpcConfig;
+use procl::control::{LatentPdPolicy, PdController, Policy};
 use procl::envs::EnvKind;
 use procl::eval::{
     Controller, ReachConfig, evaluate_oracle, evaluate_run, evaluate_run_with, reach_tasks,
@@ -57,7 +58,7 @@ fn oracle_reaches_every_goal_in_every_env() {
                 .fold(0.0, f64::max);
             assert!(gap < protocol.success_threshold, "{env} episode {k}: {gap}");
         }
-        // The reacher also reports its fingertip's final distance in metres (spec.md 1.2),
+        // The reacher also reports its fingertip's final distance in metres ,
         // one per episode; the other envs' distances are already positions in metres.
         if env == EnvKind::Reacher {
             assert_eq!(oracle.final_fingertip_distances_m.len(), tasks.len());

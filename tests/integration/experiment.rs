@@ -2,16 +2,16 @@
 //! redoing a finished stage, the report's contents, the README section and a conflicting run.
 
 use procl::envs::EnvKind;
-use procl::experiment::{
+use procl::runner::experiment::{
     Event, ExperimentConfig, README_BEGIN, README_END, run_experiment, update_readme,
 };
-use procl::pipeline::Outcome;
+use procl::runner::stages::Outcome;
 
 /// Runs the experiment; the (stage, outcome) of every finished stage.
 fn run(
     config: &ExperimentConfig,
     report_only: bool,
-) -> (procl::experiment::Summary, Vec<(String, Outcome)>) {
+) -> (procl::runner::experiment::Summary, Vec<(String, Outcome)>) {
     procl::allocator::retain_freed_memory();
     let mut finished = vec![];
     let summary = run_experiment(config, report_only, &mut |event| {

@@ -8,6 +8,7 @@ mod envs;
 mod experiment;
 mod fetch;
 mod nvae;
+mod presets;
 mod support;
 mod track;
 mod train;

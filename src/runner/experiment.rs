@@ -1,4 +1,4 @@
-//! `procl experiment paper` (issue 7): the paper's experiments on Point mass-2D, Reacher-2D and
+//! `procl experiment paper` : the paper's experiments on Point mass-2D, Reacher-2D and
 //! Fetch-3D in one resumable command. Datasets, training, goal-reaching evaluation of every
 //! method, the latent-noise ablation and Fetch tracking are stages whose finished outputs are
 //! reused on a rerun; `report.html` and `summary.json` are rebuilt from what is on disk.
@@ -13,7 +13,7 @@ use crate::eval::{
     EvalOutputs, LATENT_MAP, LatentDiagnostics, MethodSummary, ReachConfig, TRACK_FIGURE,
     TrackReport, save_reach_plot, track_run, write_diagnostics,
 };
-use crate::pipeline::{
+use crate::runner::stages::{
     Outcome, collect_or_reuse, evaluate_or_reuse, reach_protocol, read_current, read_eval,
     set_budget, shrink_networks, train_or_reuse, training_seconds,
 };
@@ -40,7 +40,7 @@ pub struct ExperimentConfig {
     /// Batch size of every run (`None`: each method's preset).
     pub batch_size: Option<usize>,
     pub eval_episodes: usize,
-    /// Episode length of the evaluation (`None`: the protocol's, spec.md 4).
+    /// Episode length of the evaluation (`None`: the protocol's).
     pub eval_horizon: Option<usize>,
     /// Latent noise std `eps` of the ProCL ablation on point mass (the preset's own value
     /// reuses the main ProCL run).
@@ -54,7 +54,7 @@ pub struct ExperimentConfig {
 }
 
 impl ExperimentConfig {
-    /// The full experiment: spec.md 2's dataset sizes, every method trained on the same budget
+    /// The full experiment: the paper's dataset sizes, every method trained on the same budget
     /// per environment, 50 evaluation episodes, eps in {0.001, 0.01, 0.1}.
     pub fn paper(out: impl Into<PathBuf>) -> Self {
         let budget = |env, train_steps| {
@@ -71,8 +71,7 @@ impl ExperimentConfig {
             seed: 0,
             envs: vec![
                 budget(EnvKind::PointMass, 600),
-                // The reacher's latent needs longer to open (docs/method.md: 24% at 600 steps,
-                // 52% at 1200 on seed 0).
+                // The reacher's latent needs longer to open (docs/research/reacher.md).
                 budget(EnvKind::Reacher, 1200),
                 budget(EnvKind::Fetch, 600),
             ],

@@ -1,4 +1,4 @@
-//! Ablation grids (issue 9): every cell of a TOML grid trained on several seeds and evaluated
+//! Ablation grids : every cell of a TOML grid trained on several seeds and evaluated
 //! with the goal-reaching protocol; resumable (finished cells are read back, not redone), one
 //! line per finished cell in `ablation.jsonl`, and `ablation.md` + `ablation.json` at the end.
 //!

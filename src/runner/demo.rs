@@ -11,9 +11,9 @@ use crate::eval::{
     LatentDiagnostics, MethodSummary, ReachConfig, ReachReport, evaluate_run, save_reach_plot,
     write_diagnostics,
 };
-use crate::pipeline::{
-    Outcome, collect_or_reuse, reach_protocol, set_budget, shrink_networks, train_or_reuse,
-    training_seconds,
+use crate::runner::stages::{
+    Outcome, ThrottledLine, collect_or_reuse, reach_protocol, set_budget, shrink_networks,
+    train_or_reuse, training_seconds,
 };
 use crate::train::{Method, Preset, RunPaths, TrainConfig};
 
@@ -117,7 +117,15 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
         if config.tiny_model {
             shrink_networks(&mut train_config);
         }
-        let outcome = train_or_reuse(&train_config, &dataset, &run, |_, _| {})?;
+        let mut every_30_s = ThrottledLine::new(std::time::Duration::from_secs(30));
+        let steps = train_config.steps;
+        let outcome = train_or_reuse(&train_config, &dataset, &run, |step, values| {
+            if let Some(eta) = every_30_s.due(step, steps) {
+                log(&format!(
+                    "training {name}: step {step}/{steps}, eta {eta}, {values}"
+                ));
+            }
+        })?;
         let train_seconds = (outcome == Outcome::Ran)
             .then(|| training_seconds(&run))
             .flatten();

@@ -7,8 +7,9 @@ use crate::data::{CollectConfig, Dataset, collect};
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::eval::{EvalOutputs, ReachConfig, ReachReport, evaluate_run};
+use crate::losses::StepValues;
 use crate::model::{EncoderHead, cpu_device};
-use crate::train::{RunPaths, StepValues, TrainConfig, train};
+use crate::train::{RunPaths, TrainConfig, train};
 
 /// Whether a stage did its work now or found it done by an earlier invocation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -200,4 +201,87 @@ pub fn reach_protocol(env: EnvKind, episodes: usize, horizon: Option<usize>) -> 
         protocol.horizon = h;
     }
     protocol
+}
+
+/// Decides when a long stage prints its next progress line: at the first step and then at
+/// most once per `every`, so a log file or a cluster job sees a stage is alive without a line
+/// per step.
+pub struct ThrottledLine {
+    every: std::time::Duration,
+    start: std::time::Instant,
+    last: Option<std::time::Instant>,
+}
+
+impl ThrottledLine {
+    pub fn new(every: std::time::Duration) -> Self {
+        Self {
+            every,
+            start: std::time::Instant::now(),
+            last: None,
+        }
+    }
+
+    /// As [`ThrottledLine::new`], but the first line is due only after `every` (a command that
+    /// finishes sooner prints none).
+    pub fn first_after(every: std::time::Duration) -> Self {
+        Self {
+            last: Some(std::time::Instant::now()),
+            ..Self::new(every)
+        }
+    }
+
+    /// `Some(eta)` (the estimated time left, as `1h02m03s`) when a line is due after `done` of
+    /// `total` units of work, `None` otherwise.
+    pub fn due(&mut self, done: u64, total: u64) -> Option<String> {
+        let now = std::time::Instant::now();
+        if self.last.is_some_and(|last| now - last < self.every) {
+            return None;
+        }
+        self.last = Some(now);
+        let elapsed = (now - self.start).as_secs_f64();
+        let left = if done == 0 {
+            f64::NAN
+        } else {
+            elapsed / done as f64 * total.saturating_sub(done) as f64
+        };
+        Some(duration_text(left))
+    }
+}
+
+/// Seconds as `1h02m03s`, `4m05s` or `6s`; `?` when unknown.
+pub fn duration_text(seconds: f64) -> String {
+    if !seconds.is_finite() || seconds < 0.0 {
+        return "?".into();
+    }
+    let s = seconds.round() as u64;
+    match (s / 3600, s / 60 % 60, s % 60) {
+        (0, 0, sec) => format!("{sec}s"),
+        (0, min, sec) => format!("{min}m{sec:02}s"),
+        (h, min, sec) => format!("{h}h{min:02}m{sec:02}s"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_progress_line_is_due_at_the_start_and_then_once_per_period() {
+        let mut line = ThrottledLine::new(std::time::Duration::from_secs(3600));
+        assert!(line.due(1, 10).is_some());
+        assert_eq!(line.due(2, 10), None);
+        let mut every_time = ThrottledLine::new(std::time::Duration::ZERO);
+        assert_eq!(every_time.due(0, 10).as_deref(), Some("?"));
+        assert!(every_time.due(5, 10).is_some());
+        let mut later = ThrottledLine::first_after(std::time::Duration::from_secs(3600));
+        assert_eq!(later.due(1, 10), None);
+    }
+
+    #[test]
+    fn durations_read_as_hours_minutes_seconds() {
+        assert_eq!(duration_text(6.4), "6s");
+        assert_eq!(duration_text(245.0), "4m05s");
+        assert_eq!(duration_text(3723.0), "1h02m03s");
+        assert_eq!(duration_text(f64::NAN), "?");
+    }
 }

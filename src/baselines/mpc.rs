@@ -6,7 +6,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::{FeedbackLaw, LatentPolicy};
+use crate::control::{FeedbackLaw, LatentPolicy};
 use crate::model::{Dynamics, to_vec};
 
 /// CEM-MPC settings.
@@ -31,7 +31,7 @@ pub struct MpcConfig {
 }
 
 impl Default for MpcConfig {
-    /// Horizon 10 (issue 6); the cost weights are the Lyapunov function's `Q_h = I`, `Q_v = 0.1 I`.
+    /// Horizon 10; the cost weights are the Lyapunov function's `Q_h = I`, `Q_v = 0.1 I`.
     fn default() -> Self {
         Self {
             horizon: 10,

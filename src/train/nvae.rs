@@ -2,11 +2,10 @@
 
 use burn::tensor::{Device, Tensor};
 
-use super::{ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, elbo_loss};
+use super::{Objective, TrainConfig, batch_tensors, normal_tensor, sample_batch, step_rng};
+use crate::baselines::nvae::{ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, elbo_loss};
 use crate::data::Dataset;
-use crate::train::{
-    Objective, StepValues, TrainConfig, batch_tensors, normal_tensor, sample_batch, step_rng,
-};
+use crate::losses::StepValues;
 
 /// The frames, actions and reparameterisation noise of training step `step`, drawn from the
 /// step's own RNG stream (so `--resume` is exact), as ProCL's batches are.

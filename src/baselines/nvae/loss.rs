@@ -4,7 +4,7 @@
 use burn::tensor::Tensor;
 
 use super::{NvaeConfig, NvaeModel};
-use crate::train::StepValues;
+use crate::losses::StepValues;
 
 /// `KL(N(mean_q, diag(exp(log_std_q))^2) || N(mean_p, diag(exp(log_std_p))^2))` in closed
 /// form, summed over dimensions and averaged over rows: `[n, d]` each (the prior's may be

@@ -1,6 +1,6 @@
 //! The latent's orientation during training: which rotation or mirror image of `h` a PD law
 //! with diagonal gains acts on, chosen by the windowed Lyapunov risk of the signed permutations
-//! or by the latent's measured response to the action (issue 9, docs/method.md).
+//! or by the latent's measured response to the action (docs/design.md).
 
 use std::path::Path;
 

@@ -1,16 +1,18 @@
-//! The NewtonianVAE baseline (Jaques, Burke, Hospedales 2021; spec.md 4): a VAE whose latent
+//! The NewtonianVAE baseline (Jaques, Burke, Hospedales 2021): a VAE whose latent
 //! position `x` follows a Newtonian transition prior with diagonal, state-dependent `A`, `B < 0`,
 //! `C > 0`, trained on the dataset's samples `(i_{t-1}, i_t, u_t, i_{t+1})` by the ELBO, and
 //! controlled by PID on the posterior mean.
 
 mod loss;
 mod model;
-mod train;
 
 pub use loss::{ELBO_NAMES, ElboInputs, ElboTerms, elbo_loss, gaussian_kl, reconstruction_nll};
 pub use model::{Decoder, GaussianEncoder, NvaeModel, NvaeTransition, TransitionMatrices};
-pub(crate) use train::NvaeObjective;
-pub use train::elbo_inputs;
+
+use crate::control::{LatentPolicy, Pid};
+
+/// PID on the NewtonianVAE's posterior mean.
+pub type LatentPidPolicy = LatentPolicy<Pid, GaussianEncoder>;
 
 use crate::control::PidController;
 use crate::error::{Error, Result};

@@ -1,0 +1,5 @@
+//! The methods ProCL is measured against: the NewtonianVAE (its own networks, ELBO and PID on
+//! its posterior mean) and model-predictive control through a learned latent dynamics.
+
+pub mod mpc;
+pub mod nvae;

@@ -1,0 +1,495 @@
+//! Training configurations: the method, the presets per environment (docs/design.md) and
+//! TOML files over them, validated with the offending field's name.
+
+use std::path::Path;
+
+use crate::baselines::nvae::NvaeConfig;
+use crate::envs::EnvKind;
+use crate::error::{Error, Result};
+use crate::losses::{LossConfig, NoiseMode};
+use crate::model::{EncoderHead, ModelConfig};
+use crate::train::orientation::OrientationCriterion;
+
+/// Which objective to train.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// PC3 losses plus the latent PD-control Lyapunov risk.
+    Procl,
+    /// PC3 alone: the same networks with `lambda_R = 0`.
+    Pc3,
+    /// The NewtonianVAE baseline (its own networks, the `nvae` config table), PID-controlled.
+    Nvae,
+}
+
+impl Method {
+    /// The method's name in reports: ProCL, PC3, NewtonianVAE.
+    pub fn label(self) -> &'static str {
+        match self {
+            Method::Procl => "ProCL",
+            Method::Pc3 => "PC3",
+            Method::Nvae => "NewtonianVAE",
+        }
+    }
+
+    /// The method's name on the command line and as a run folder: procl, pc3, nvae.
+    pub fn dir_name(self) -> &'static str {
+        match self {
+            Method::Procl => "procl",
+            Method::Pc3 => "pc3",
+            Method::Nvae => "nvae",
+        }
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match [Method::Procl, Method::Pc3, Method::Nvae]
+            .into_iter()
+            .find(|m| m.dir_name() == s)
+        {
+            Some(method) => Ok(method),
+            None => Err(Error::config(
+                "method",
+                format!("unknown method `{s}` (expected procl, pc3 or nvae)"),
+            )),
+        }
+    }
+}
+
+/// Named starting points for a configuration.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Preset {
+    /// The paper as written: PC3-style MLP encoder head, noise as in the paper.
+    Paper,
+    /// procl's default: the paper plus the departures in docs/design.md.
+    Procl,
+}
+
+/// The NewtonianVAE's default batch: each sample also decodes its three frames; at 64 a step
+/// took 0.6-1.0 s on the shared 2-core machine, about a ProCL step at 128.
+const NVAE_BATCH_SIZE: usize = 64;
+
+/// Everything a training run needs; written to the run folder as `config.json`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    pub preset: Preset,
+    pub method: Method,
+    /// Environment the model is for (checked against the dataset).
+    pub env: EnvKind,
+    /// Seed of weights, batches and noise.
+    pub seed: u64,
+    /// Optimiser steps.
+    pub steps: u64,
+    /// Samples per batch (`K` of the CPC loss).
+    pub batch_size: usize,
+    /// Adam learning rate.
+    pub learning_rate: f64,
+    /// Save a checkpoint every this many steps (and at the end).
+    pub checkpoint_every: u64,
+    /// Every this many steps, choose the latent's orientation from the window's training
+    /// batches by `orientation_criterion` (0: off, the paper's training). See
+    /// [`crate::model::ProclModel::reorient_latent`]; must divide `checkpoint_every`.
+    #[serde(default)]
+    pub orientation_search_every: u64,
+    /// What the orientation search compares: the Lyapunov risk of the signed permutations
+    /// (`risk`, margin and streak below) or the latent's response to the action
+    /// (`action-response`, tolerance below).
+    #[serde(default)]
+    pub orientation_criterion: OrientationCriterion,
+    /// `action-response`: rotate when the aligning map is further than this from the identity
+    /// (Frobenius norm; a rotation by `a` radians in a plane is at `2 sqrt(2) sin(a/2)`).
+    #[serde(default = "default_orientation_tolerance")]
+    pub orientation_tolerance: f64,
+    /// The orientation search switches when a candidate's windowed risk is below
+    /// `(1 - orientation_margin)` times the current one's ...
+    #[serde(default = "default_orientation_margin")]
+    pub orientation_margin: f64,
+    /// ... and it has been the best candidate for this many consecutive windows (1: decide on
+    /// each window alone). For Fetch the candidates' risks differ by only 2-3% per window,
+    /// but the same one wins window after window. A streak > 1 is not carried across
+    /// `--resume` (the count restarts).
+    #[serde(default = "default_orientation_streak")]
+    pub orientation_streak: u64,
+    /// ProCL's and PC3's losses and networks (unused by `nvae`).
+    pub loss: LossConfig,
+    pub model: ModelConfig,
+    /// The NewtonianVAE's networks, ELBO and PID (method `nvae` only; absent otherwise, so
+    /// the config.json of earlier runs still loads and compares equal).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nvae: Option<NvaeConfig>,
+}
+
+fn default_orientation_margin() -> f64 {
+    0.1
+}
+
+fn default_orientation_streak() -> u64 {
+    1
+}
+
+fn default_orientation_tolerance() -> f64 {
+    0.05
+}
+
+/// The training steps every published result uses on `env` (and the default of `procl train`):
+/// 600 on point mass and Fetch, 1200 on the reacher.
+pub fn training_budget(env: EnvKind) -> u64 {
+    match env {
+        EnvKind::PointMass | EnvKind::Fetch => 600,
+        EnvKind::Reacher => 1200,
+    }
+}
+
+impl TrainConfig {
+    /// The configuration of `preset` for `method` on `env`.
+    pub fn preset(preset: Preset, method: Method, env: EnvKind) -> Self {
+        let du = env.make().action_dim();
+        let mut config = Self {
+            preset,
+            method,
+            env,
+            seed: 0,
+            steps: training_budget(env),
+            batch_size: 128,
+            learning_rate: 1e-3,
+            checkpoint_every: 500,
+            orientation_search_every: 0,
+            orientation_margin: default_orientation_margin(),
+            orientation_streak: default_orientation_streak(),
+            orientation_criterion: OrientationCriterion::Risk,
+            orientation_tolerance: default_orientation_tolerance(),
+            loss: LossConfig::default(),
+            model: ModelConfig::for_action_dim(du),
+            nvae: None,
+        };
+        match preset {
+            Preset::Paper => {
+                config.model.encoder.head = EncoderHead::Mlp { hidden: 256 };
+            }
+            Preset::Procl => {
+                config.loss.noise_mode = NoiseMode::CleanRisk;
+                config.orientation_search_every = 50;
+                config.model.encoder.keypoint_sharpness = 30.0;
+            }
+        }
+        match method {
+            Method::Procl => {}
+            Method::Pc3 => config.loss.lambda_r = 0.0,
+            Method::Nvae => {
+                config.nvae = Some(NvaeConfig::for_action_dim(du));
+                // The search reorients ProCL's latent by its Lyapunov risk; the NewtonianVAE's
+                // orientation is the transition prior's business.
+                config.orientation_search_every = 0;
+                config.batch_size = NVAE_BATCH_SIZE;
+            }
+        }
+        if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
+            // The shoulder is a revolute joint at the image centre: polar keypoints about it,
+            // the angles between keypoints (entering from 0, faded at the angle cut) over 32x32
+            // cells, a tanh layer, a latent started at unit spread and held there by a variance
+            // floor, orientation by the action response, and the risk on the standardised latent
+            // with gains matched to that scale (docs/design.md, "Reacher").
+            config.model.encoder.head = EncoderHead::SoftArgmax {
+                keypoints: 16,
+                hidden: 32,
+                polar: true,
+                pairwise_angles: true,
+            };
+            config.model.encoder.pairwise_init_scale = 0.0;
+            config.model.encoder.polar_cut_fade_deg = 15.0;
+            config.model.encoder.trunk_second_stride = 1;
+            config.model.encoder.init_latent_std = Some(1.0);
+            config.loss.variance_floor = Some(1.0);
+            config.loss.variance_weight = 10.0;
+            config.orientation_criterion = OrientationCriterion::ActionResponse;
+            config.loss.risk_latent_std = Some(1.0);
+            config.loss.kp = 1.0;
+            config.loss.kd = 0.2;
+            config.loss.lambda_r /= 10.0;
+            if method == Method::Procl {
+                // The risk's velocity term charges the heavily damped wrist for its velocity
+                // jumps, so `V` has none; the sign term and its singular-value floor keep the
+                // latent from hooking back at the shoulder's ends. Both are PD-controllability
+                // terms like the risk, so PC3 gets neither (docs/design.md, "Reacher").
+                config.loss.q_v = 0.0;
+                config.loss.action_response_sign_weight = 3.0;
+                config.loss.action_response_horizon = 5;
+                config.loss.action_response_velocity = true;
+                config.loss.action_response_regions = 6;
+                config.loss.action_response_singular_floor = 0.25;
+            }
+        }
+        if env == EnvKind::Fetch {
+            // The paper's dt_R for Fetch is 1 (the env's control dt for the 2-D envs).
+            config.loss.lyapunov_dt_s = Some(1.0);
+            if preset == Preset::Procl {
+                // A signed permutation leaves Fetch's latent up to 45 degrees from the gripper
+                // axes; the action response measures and removes the whole rotation, and a
+                // larger Kd damps the orbits a slightly turned latent makes about its goal
+                // (docs/design.md, "Fetch").
+                config.orientation_criterion = OrientationCriterion::ActionResponse;
+                config.loss.kd = 4.0;
+            }
+        }
+        config
+    }
+
+    /// Rejects invalid values with the field's name.
+    pub fn validate(&self) -> Result<()> {
+        if self.steps == 0 {
+            return Err(Error::config("steps", "must be at least 1"));
+        }
+        if !(0.0..1.0).contains(&self.orientation_margin) {
+            return Err(Error::config(
+                "orientation_margin",
+                format!("{} must be in [0, 1)", self.orientation_margin),
+            ));
+        }
+        if !(self.orientation_tolerance.is_finite() && self.orientation_tolerance >= 0.0) {
+            return Err(Error::config(
+                "orientation_tolerance",
+                format!("{} must be >= 0", self.orientation_tolerance),
+            ));
+        }
+        if self.batch_size < 2 && self.method != Method::Nvae {
+            return Err(Error::config(
+                "batch_size",
+                format!(
+                    "{} must be at least 2 (CPC needs negatives)",
+                    self.batch_size
+                ),
+            ));
+        }
+        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
+            return Err(Error::config(
+                "learning_rate",
+                format!("{} must be > 0", self.learning_rate),
+            ));
+        }
+        if self.checkpoint_every == 0 {
+            return Err(Error::config("checkpoint_every", "must be at least 1"));
+        }
+        if self.orientation_search_every > 0
+            && !self
+                .checkpoint_every
+                .is_multiple_of(self.orientation_search_every)
+        {
+            return Err(Error::config(
+                "orientation_search_every",
+                format!(
+                    "{} must divide checkpoint_every = {} (so a resumed run searches the same windows)",
+                    self.orientation_search_every, self.checkpoint_every
+                ),
+            ));
+        }
+        if self.method == Method::Pc3 && self.loss.lambda_r != 0.0 {
+            return Err(Error::config("loss.lambda_r", "must be 0 for method pc3"));
+        }
+        let du = self.env.make().action_dim();
+        match (&self.nvae, self.method) {
+            (Some(nvae), Method::Nvae) => {
+                if nvae.latent_dim != du {
+                    return Err(Error::config(
+                        "nvae.latent_dim",
+                        format!("must equal the action dimension {du} of {}", self.env),
+                    ));
+                }
+                if self.orientation_search_every != 0 {
+                    return Err(Error::config(
+                        "orientation_search_every",
+                        "must be 0 for method nvae (the search is ProCL's)",
+                    ));
+                }
+                nvae.validate()?;
+            }
+            (None, Method::Nvae) => {
+                return Err(Error::config("nvae", "method nvae needs its [nvae] table"));
+            }
+            (Some(_), _) => {
+                return Err(Error::config(
+                    "nvae",
+                    format!("is for method nvae only, not {}", self.method.label()),
+                ));
+            }
+            (None, _) => {}
+        }
+        if self.model.encoder.latent_dim != du {
+            return Err(Error::config(
+                "model.encoder.latent_dim",
+                format!("must equal the action dimension {du} of {}", self.env),
+            ));
+        }
+        self.loss.validate()?;
+        self.model.validate()
+    }
+}
+
+/// Reads a TOML config file over a preset: `preset`/`method` keys pick the base, every other
+/// key overrides it.
+pub fn config_from_toml(path: &Path, env: EnvKind, method: Option<Method>) -> Result<TrainConfig> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let table: toml::Table = text.parse().map_err(|e: toml::de::Error| {
+        Error::config(path.display().to_string(), e.message().to_string())
+    })?;
+    config_from_table(table, env, method).map_err(|e| match e {
+        Error::InvalidConfig { field, message } => {
+            Error::config(format!("{}: {field}", path.display()), message)
+        }
+        other => other,
+    })
+}
+
+/// [`config_from_toml`] on an already parsed table.
+pub fn config_from_table(
+    table: toml::Table,
+    env: EnvKind,
+    method: Option<Method>,
+) -> Result<TrainConfig> {
+    let preset: Preset = match table.get("preset") {
+        Some(v) => v.clone().try_into().map_err(|_| {
+            Error::config(
+                "preset",
+                format!("unknown preset {v} (expected paper or procl)"),
+            )
+        })?,
+        None => Preset::Procl,
+    };
+    let method = match (method, table.get("method")) {
+        (Some(m), _) => m,
+        (None, Some(v)) => v.as_str().unwrap_or("").parse()?,
+        (None, None) => Method::Procl,
+    };
+    if method != Method::Nvae && table.contains_key("nvae") {
+        return Err(Error::config(
+            "nvae",
+            format!(
+                "is for method nvae only, not {} (set method = \"nvae\" or pass --method nvae)",
+                method.label()
+            ),
+        ));
+    }
+    let base = TrainConfig::preset(preset, method, env);
+    let mut merged =
+        toml::Table::try_from(&base).map_err(|e| Error::config("config", e.to_string()))?;
+    merge(&mut merged, table);
+    merged.insert(
+        "method".into(),
+        toml::Value::try_from(method).map_err(|e| Error::config("method", e.to_string()))?,
+    );
+    if let Some(named) = merged.get("env").and_then(|v| v.as_str())
+        && named != env.name()
+    {
+        return Err(Error::config(
+            "env",
+            format!("the configuration is for {named}, the dataset is from {env}"),
+        ));
+    }
+    merged.insert("env".into(), toml::Value::String(env.name().into()));
+    // The path to the offending value names the field (`model.dynamics.full_covariance`), not
+    // just the whole config.
+    let config: TrainConfig = serde_path_to_error::deserialize(toml::Value::Table(merged))
+        .map_err(|e| {
+            let field = e.path().to_string();
+            let field = if field == "." { "config".into() } else { field };
+            Error::config(field, e.into_inner().message().to_string())
+        })?;
+    config.validate()?;
+    Ok(config)
+}
+
+/// Deep-merges `over` into `base` (tables recursively, other values replaced).
+pub(crate) fn merge(base: &mut toml::Table, over: toml::Table) {
+    for (key, value) in over {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o),
+            (_, value) => {
+                base.insert(key, value);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fetch_uses_the_papers_lyapunov_dt() {
+        for preset in [Preset::Paper, Preset::Procl] {
+            let fetch = TrainConfig::preset(preset, Method::Procl, EnvKind::Fetch);
+            assert_eq!(fetch.loss.lyapunov_dt_s, Some(1.0));
+            let reacher = TrainConfig::preset(preset, Method::Procl, EnvKind::Reacher);
+            assert_eq!(reacher.loss.lyapunov_dt_s, None);
+        }
+        // Fetch and the reacher (both latent methods) orient by the action response; the point
+        // mass keeps the risk search its results were measured with, and the paper preset
+        // searches nothing.
+        for env in [EnvKind::Fetch, EnvKind::Reacher] {
+            for method in [Method::Procl, Method::Pc3] {
+                let config = TrainConfig::preset(Preset::Procl, method, env);
+                assert_eq!(
+                    config.orientation_criterion,
+                    OrientationCriterion::ActionResponse
+                );
+                assert_eq!(config.orientation_search_every, 50);
+            }
+        }
+        // The reacher's gain-matched risk keeps PC3 at lambda_R = 0.
+        let reacher_pc3 = TrainConfig::preset(Preset::Procl, Method::Pc3, EnvKind::Reacher);
+        assert_eq!(reacher_pc3.loss.lambda_r, 0.0);
+        assert_eq!(reacher_pc3.loss.kp, 1.0);
+        let point_mass = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
+        assert_eq!(
+            (
+                point_mass.orientation_criterion,
+                point_mass.orientation_margin
+            ),
+            (OrientationCriterion::Risk, 0.1)
+        );
+        let paper = TrainConfig::preset(Preset::Paper, Method::Procl, EnvKind::Fetch);
+        assert_eq!(paper.orientation_search_every, 0);
+        // Fetch's latent PD is damped harder than the paper's Kd = 2, for both latent methods.
+        assert_eq!(paper.loss.kd, 2.0);
+        for method in [Method::Procl, Method::Pc3] {
+            let fetch = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
+            assert_eq!((fetch.loss.kp, fetch.loss.kd), (10.0, 4.0));
+        }
+    }
+
+    #[test]
+    fn a_value_of_the_wrong_type_is_refused_by_its_path() {
+        for (text, field) in [
+            (
+                "[model.dynamics]\ninit_std = \"yes\"",
+                "model.dynamics.init_std",
+            ),
+            (
+                "[loss]\naction_response_sign_weight = \"x\"",
+                "loss.action_response_sign_weight",
+            ),
+            ("steps = -3", "steps"),
+        ] {
+            let table: toml::Table = text.parse().unwrap();
+            let err = config_from_table(table, EnvKind::Reacher, None)
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(&format!("`{field}`")), "{text}: {err}");
+        }
+    }
+
+    #[test]
+    fn orientation_rules_are_checked_by_name() {
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Fetch);
+        config.orientation_margin = 1.0;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("orientation_margin"), "{err}");
+        let mut config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        config.orientation_tolerance = f64::NAN;
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("orientation_tolerance"), "{err}");
+    }
+}
