@@ -2,10 +2,11 @@
 //!
 //! The modules follow the data flow, each using only those above it:
 //! - [`envs`]: the simulated systems and their 64x64 cameras (know nothing of datasets);
-//! - [`data`]: random-control datasets and demonstrations, collected and stored as NPZ;
+//! - [`data`]: random-control datasets, collected and stored as NPZ;
 //! - [`model`]: the encoder `e`, the latent `z = (h, v)` and the latent dynamics `g`;
 //! - [`losses`]: the PC3 terms, the Lyapunov risk with hindsight targets, the regularisers;
-//! - [`control`]: PD and PID laws and the policies that run them on camera frames;
+//! - [`control`]: PD and PID laws, the policies that run them on camera frames, and the
+//!   demonstrations the oracle PD records for tracking;
 //! - [`baselines`]: the NewtonianVAE and model-predictive control on a learned latent;
 //! - [`train`]: configurations and presets, batches, the loop, checkpoints, run folders;
 //! - [`eval`]: goal reaching, tracking, latent diagnostics and plots of a trained run;

@@ -489,14 +489,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             force,
         } => {
             let env: EnvKind = env.parse()?;
-            let shape: procl::data::PathShape = shape.parse()?;
+            let shape: procl::control::PathShape = shape.parse()?;
             procl::check_writable(&out, force)?;
-            let config = procl::data::ReferenceConfig {
+            let config = procl::control::ReferenceConfig {
                 episodes,
                 steps,
-                ..procl::data::ReferenceConfig::new(env, shape, seed)
+                ..procl::control::ReferenceConfig::new(env, shape, seed)
             };
-            let data = procl::data::generate_reference(&config, |_| {})?;
+            let data = procl::control::generate_reference(&config, |_| {})?;
             data.save(&out, force)?;
             println!(
                 "wrote {} ({episodes} {} demonstrations x {steps} steps of {env}, seed {seed})",
@@ -673,6 +673,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let (data, _) =
                 procl::runner::stages::collect_or_reuse(&collect_config, &data_path, |_| {})?;
             let protocol = procl::runner::stages::reach_protocol(env, episodes, horizon);
+            let mut line = ThrottledLine::first_after(std::time::Duration::from_secs(30));
             let results = procl::runner::ablate::run_grid(
                 &grid,
                 &data,
@@ -691,6 +692,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                         r.det.map_or("-".into(), |d| format!("{d:.2}")),
                         r.train_seconds
                     )
+                },
+                |cell, seed, step, steps, values| {
+                    // One plain line every 30 s, on a terminal or not: a cell trains for minutes.
+                    if step == 1 {
+                        line = ThrottledLine::first_after(std::time::Duration::from_secs(30));
+                    }
+                    if let Some(eta) = line.due(step, steps) {
+                        eprintln!("{cell} seed {seed}: step {step}/{steps}, eta {eta}, {values}");
+                    }
                 },
             )?;
             println!(

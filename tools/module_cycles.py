@@ -2,7 +2,7 @@
 """Module dependency graph of src/ (`crate::` and `super::` paths as edges) and its cycles:
   python3 tools/module_cycles.py src 1   # top-level modules; 2 for their submodules
 """
-import os, re, sys, itertools
+import os, re, sys
 root = sys.argv[1] if len(sys.argv) > 1 else 'src'
 level = int(sys.argv[2]) if len(sys.argv) > 2 else 1
 def modname(path):
@@ -53,3 +53,4 @@ for c in sccs: print('cycle:', ' <-> '.join(c))
 print(len(sccs), 'cycles among', len(nodes), 'modules at level', level)
 if '-v' in sys.argv:
     for a in sorted(edges): print(a, '->', ', '.join(sorted(edges[a])))
+sys.exit(1 if sccs else 0)

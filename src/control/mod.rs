@@ -1,9 +1,11 @@
 //! Controllers as small `Copy` values with pure control laws, and the latent policy that runs
 //! one on camera frames.
 
+mod demonstrations;
 mod latent;
 mod pid;
 
+pub use demonstrations::{PathShape, ReferenceConfig, generate_reference};
 pub use latent::{LatentPdPolicy, LatentPolicy, OraclePdPolicy, Policy, Target};
 pub use pid::{FeedbackLaw, Pid, PidController};
 

@@ -79,7 +79,7 @@ impl CollectConfig {
 
 /// A dataset being rolled out: the arrays of `episodes` episodes of `steps` steps of one env,
 /// filled one step at a time (by [`collect`] and by the demonstration generator).
-pub(super) struct Recording {
+pub(crate) struct Recording {
     env: EnvKind,
     obs: Array5<u8>,
     actions: Array3<f32>,
@@ -88,7 +88,7 @@ pub(super) struct Recording {
 }
 
 impl Recording {
-    pub(super) fn new(env: &dyn Env, episodes: usize, steps: usize) -> Self {
+    pub(crate) fn new(env: &dyn Env, episodes: usize, steps: usize) -> Self {
         let (du, dq) = (env.action_dim(), env.config_dim());
         Self {
             env: env.kind(),
@@ -101,7 +101,7 @@ impl Recording {
 
     /// Renders `env` and stores the frame and the true state as frame `t` of `episode`;
     /// returns the state.
-    pub(super) fn observe(&mut self, env: &mut dyn Env, episode: usize, t: usize) -> State {
+    pub(crate) fn observe(&mut self, env: &mut dyn Env, episode: usize, t: usize) -> State {
         env.render(&mut self.frame);
         let flat = self.obs.slice_mut(ndarray::s![episode, t, .., .., ..]);
         // A freshly zeroed Array5 is in standard layout, so each frame slice is contiguous.
@@ -116,14 +116,14 @@ impl Recording {
     }
 
     /// Stores the action taken at step `t` of `episode`.
-    pub(super) fn act(&mut self, episode: usize, t: usize, u: &[f64]) {
+    pub(crate) fn act(&mut self, episode: usize, t: usize, u: &[f64]) {
         for (i, &a) in u.iter().enumerate() {
             self.actions[[episode, t, i]] = a as f32;
         }
     }
 
     /// The finished dataset, with its metadata.
-    pub(super) fn finish(self, control_dt_s: f64, seed: u64, source: String) -> Result<Dataset> {
+    pub(crate) fn finish(self, control_dt_s: f64, seed: u64, source: String) -> Result<Dataset> {
         let meta = DatasetMeta {
             format_version: DATASET_FORMAT_VERSION,
             env: self.env,

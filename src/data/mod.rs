@@ -1,9 +1,9 @@
-//! Datasets: seeded random-control collection, demonstration paths for tracking, the NPZ store.
+//! Datasets: seeded random-control collection and the NPZ store (demonstrations for tracking
+//! are recorded by [`crate::control::generate_reference`] in the same layout).
 
 mod collect;
-mod reference;
 mod store;
 
+pub(crate) use collect::Recording;
 pub use collect::{CollectConfig, STRIP_STRIDE, collect, render_strip};
-pub use reference::{PathShape, ReferenceConfig, generate_reference};
 pub use store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta};

@@ -23,6 +23,7 @@ use std::path::{Path, PathBuf};
 use crate::data::Dataset;
 use crate::error::{Error, Result};
 use crate::eval::{ReachConfig, evaluate_run, write_diagnostics};
+use crate::losses::StepValues;
 use crate::model::cpu_device;
 use crate::train::{RunPaths, TrainConfig, config_from_table, train};
 
@@ -116,7 +117,9 @@ pub struct CellResult {
 /// Runs (or resumes) the grid on `data`, training seeds `seeds` per cell, into `out`. Results
 /// already in `out/ablation.jsonl` are read back instead of trained (so grids split across
 /// machines are merged by concatenating their `ablation.jsonl` lines); with `train_missing`
-/// false nothing is trained and the summary covers what is there.
+/// false nothing is trained and the summary covers what is there. `progress(cell, seed, step,
+/// steps, values)` is called after every training step.
+#[allow(clippy::too_many_arguments)]
 pub fn run_grid(
     grid: &Grid,
     data: &Dataset,
@@ -125,6 +128,7 @@ pub fn run_grid(
     out: &Path,
     train_missing: bool,
     mut log: impl FnMut(&CellResult),
+    mut progress: impl FnMut(&str, u64, u64, u64, &StepValues),
 ) -> Result<Vec<CellResult>> {
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let jsonl = out.join("ablation.jsonl");
@@ -145,7 +149,14 @@ pub fn run_grid(
             let run = RunPaths::new(out.join(name).join(format!("seed-{seed}")));
             let resume = run.checkpoint().exists();
             let start = std::time::Instant::now();
-            train(&config, data, &run, resume, &cpu_device(), |_, _| {})?;
+            train(
+                &config,
+                data,
+                &run,
+                resume,
+                &cpu_device(),
+                |step, values| progress(name, seed, step, config.steps, values),
+            )?;
             let train_seconds = start.elapsed().as_secs_f64();
             let diagnostics = write_diagnostics(&run)?;
             let report = evaluate_run(&run, protocol, |_| {})?;

@@ -6,7 +6,8 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use crate::data::{CollectConfig, Dataset, PathShape, ReferenceConfig, generate_reference};
+use crate::control::{PathShape, ReferenceConfig, generate_reference};
+use crate::data::{CollectConfig, Dataset};
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::eval::{

@@ -2,7 +2,8 @@
 //! tracking loop's encoding budget and outputs, and bad input on the command line.
 
 use procl::control::{LatentPdPolicy, OraclePdPolicy, PdController, Policy, oracle_gains};
-use procl::data::{Dataset, PathShape, ReferenceConfig, generate_reference};
+use procl::control::{PathShape, ReferenceConfig, generate_reference};
+use procl::data::Dataset;
 use procl::envs::EnvKind;
 use procl::eval::{Reference, track_episode, track_run};
 use procl::model::cpu_device;

@@ -12,9 +12,8 @@ use std::f64::consts::TAU;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::collect::Recording;
-use super::store::Dataset;
-use crate::control::oracle_gains;
+use super::oracle_gains;
+use crate::data::{Dataset, Recording};
 use crate::envs::{EnvKind, State};
 use crate::error::{Error, Result};
 
