@@ -1,5 +1,6 @@
-//! Training throughput: one optimiser step of the default procl configuration (batch 128,
-//! encode 3 frames per sample, all loss terms, backward, Adam), reported as samples per second.
+//! Training throughput: one optimiser step of the point-mass presets and the reacher preset
+//! (batch 128, every frame of a sample encoded, all loss terms, backward, Adam), reported as
+//! samples per second; benches/twin/ times the same step in PyTorch.
 //! Uses every core burn-flex is given (rayon's global pool): 2 on the reference machine.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
@@ -13,42 +14,45 @@ use procl::train::{Method, Preset, TrainConfig, loss_inputs};
 fn train_step(c: &mut Criterion) {
     // As the binary does at start (src/allocator.rs), so the figure is the one users get.
     procl::allocator::retain_freed_memory();
-    let env = EnvKind::PointMass;
-    let data = collect(
-        &CollectConfig {
-            transitions: 2000,
-            ..CollectConfig::new(env, 0)
-        },
-        |_| {},
-    )
-    .expect("dataset");
     let mut group = c.benchmark_group("train_step");
     group.sample_size(10);
-    for preset in [Preset::Procl, Preset::Paper] {
+    let cases = [
+        (EnvKind::PointMass, Preset::Procl),
+        (EnvKind::PointMass, Preset::Paper),
+        (EnvKind::Reacher, Preset::Procl),
+    ];
+    for (env, preset) in cases {
+        // Each environment's own episodes (the reacher's 10 steps hold the sign term's reach).
+        let data = collect(
+            &CollectConfig {
+                transitions: 2000,
+                ..CollectConfig::new(env, 0)
+            },
+            |_| {},
+        )
+        .expect("dataset");
         let config = TrainConfig::preset(preset, Method::Procl, env);
         let device = cpu_device().autodiff();
         let mut model = Some(config.model.init(0, &device).expect("model"));
         let mut adam = Adam::default();
         let mut step = 0u64;
         group.throughput(Throughput::Elements(config.batch_size as u64));
-        group.bench_function(
-            format!("{preset:?}_batch{}", config.batch_size).to_lowercase(),
-            |b| {
-                b.iter(|| {
-                    let current = model.take().expect("model");
-                    let inputs = loss_inputs(&current, &data, &config, step, &device);
-                    let terms = procl_loss(
-                        &config.loss,
-                        &current.dynamics,
-                        inputs,
-                        data.meta.control_dt_s,
-                    );
-                    let grads = terms.total.backward();
-                    model = Some(adam.step(config.learning_rate, current, &grads));
-                    step += 1;
-                })
-            },
-        );
+        let name = format!("{env}_{preset:?}").to_lowercase();
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                let current = model.take().expect("model");
+                let inputs = loss_inputs(&current, &data, &config, step, &device);
+                let terms = procl_loss(
+                    &config.loss,
+                    &current.dynamics,
+                    inputs,
+                    data.meta.control_dt_s,
+                );
+                let grads = terms.total.backward();
+                model = Some(adam.step(config.learning_rate, current, &grads));
+                step += 1;
+            })
+        });
     }
     group.finish();
 }
