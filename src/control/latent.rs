@@ -7,7 +7,7 @@ use burn::tensor::Device;
 
 use super::{FeedbackLaw, PdController};
 use crate::envs::State;
-use crate::model::{Encoder, LatentEncoder, frames_to_tensor, to_vec};
+use crate::model::{Encoder, HostEncoder, LatentEncoder, frames_to_tensor, to_vec};
 
 /// A tracking target for the next action: the reference's latent `(h*, v*)` for latent
 /// policies, its true state for the oracle.
@@ -39,6 +39,8 @@ pub trait Policy {
 /// difference.
 pub struct LatentPolicy<L, E = Encoder> {
     encoder: E,
+    /// The encoder's host copy, where it has one: one frame at a time without tensors.
+    host: Option<HostEncoder>,
     device: Device,
     law: L,
     dt: f64,
@@ -59,6 +61,7 @@ pub type LatentPdPolicy = LatentPolicy<PdController>;
 impl<L: FeedbackLaw, E: LatentEncoder> LatentPolicy<L, E> {
     pub fn new(encoder: E, device: Device, law: L, dt: f64) -> Self {
         Self {
+            host: encoder.host_encoder(),
             encoder,
             device,
             law,
@@ -80,6 +83,11 @@ impl<L: FeedbackLaw, E: LatentEncoder> LatentPolicy<L, E> {
     /// Encodes one frame to `h`.
     pub fn encode(&mut self, frame: &[u8]) -> Vec<f64> {
         self.frames_encoded += 1;
+        if let Some(host) = self.host.as_mut() {
+            let mut h = vec![0.0; host.latent_dim()];
+            host.encode(frame, &mut h);
+            return h;
+        }
         let h = self
             .encoder
             .encode(frames_to_tensor(std::iter::once(frame), &self.device));

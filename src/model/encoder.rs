@@ -6,6 +6,7 @@ use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::{relu, softmax, tanh};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
+use super::host_encoder::{HostConv, HostEncoder, HostHead, HostLinear};
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 use crate::error::{Error, Result};
 
@@ -465,6 +466,87 @@ impl Encoder {
             None => keypoints,
         };
         head.latent_from_features(keypoints)
+    }
+}
+
+impl Encoder {
+    /// A host copy of this encoder's weights for control (see [`HostEncoder`]).
+    pub fn host_encoder(&self) -> HostEncoder {
+        let device = self.latent_transform.val().device();
+        let (conv1, conv2) = (host_conv(&self.conv1), host_conv(&self.conv2));
+        let head = match (&self.mlp, &self.keypoints) {
+            (Some(mlp), _) => HostHead::Mlp {
+                conv3: host_conv(&mlp.conv3),
+                fc1: host_linear(&mlp.fc1),
+                fc2: host_linear(&mlp.fc2),
+            },
+            (None, Some(head)) => {
+                let features = host_conv(&head.features);
+                // The trunk's output side: 64 pixels through conv1 and conv2.
+                let side = [&conv1, &conv2].iter().fold(FRAME_PX, |s, c| {
+                    (s + 2 * c.padding - c.kernel) / c.stride + 1
+                });
+                let (grid_x, grid_y) = pixel_grid(side, side, &device);
+                let grids = match &head.polar_axis {
+                    Some(axis) => {
+                        let axis = axis.val();
+                        let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
+                        let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
+                        let (x, y) = (grid_x.clone(), grid_y.clone());
+                        let (angle, radius) = polar_grid(x, y, cos_m, sin_m, head.cut_fade_rad);
+                        [super::to_vec(angle), super::to_vec(radius)]
+                    }
+                    None => [super::to_vec(grid_x.clone()), super::to_vec(grid_y.clone())],
+                };
+                HostHead::Keypoints {
+                    features,
+                    sharpness: super::to_vec(head.log_sharpness.val().exp()),
+                    grids,
+                    pairwise: head
+                        .pairwise_angles
+                        .then(|| [super::to_vec(grid_x), super::to_vec(grid_y)]),
+                    hidden: head.hidden.as_ref().map(host_linear),
+                    out: host_linear(&head.out),
+                }
+            }
+            (None, None) => unreachable!("an encoder has one head by construction"),
+        };
+        HostEncoder::new(
+            conv1,
+            conv2,
+            head,
+            super::to_vec(self.latent_transform.val()),
+        )
+    }
+}
+
+fn host_conv(conv: &Conv2d) -> HostConv {
+    let [cout, cin, kernel, _] = conv.weight.dims();
+    let padding = match conv.padding {
+        PaddingConfig2d::Explicit(top, ..) => top,
+        _ => 0,
+    };
+    HostConv::new(
+        &super::to_vec(conv.weight.val()),
+        conv.bias
+            .as_ref()
+            .map_or_else(|| vec![0.0; cout], |b| super::to_vec(b.val())),
+        [cin, cout],
+        kernel,
+        conv.stride[0],
+        padding,
+    )
+}
+
+fn host_linear(layer: &Linear) -> HostLinear {
+    let [_, outputs] = layer.weight.dims();
+    HostLinear {
+        weight: super::to_vec(layer.weight.val()),
+        bias: layer
+            .bias
+            .as_ref()
+            .map_or_else(|| vec![0.0; outputs], |b| super::to_vec(b.val())),
+        outputs,
     }
 }
 

@@ -5,10 +5,12 @@
 
 mod dynamics;
 mod encoder;
+mod host_encoder;
 mod init;
 
 pub use dynamics::{Dynamics, DynamicsConfig, Transition};
 pub use encoder::{Encoder, EncoderConfig, EncoderHead};
+pub use host_encoder::HostEncoder;
 pub use init::reinit_params;
 
 use burn::module::Module;
@@ -69,6 +71,10 @@ pub trait LatentEncoder {
     fn encode(&self, frames: Tensor<4>) -> Tensor<2>;
     /// Dimension of the latent configuration.
     fn latent_dim(&self) -> usize;
+    /// A host copy for encoding one frame at a time, where the model has one.
+    fn host_encoder(&self) -> Option<HostEncoder> {
+        None
+    }
 }
 
 impl LatentEncoder for Encoder {
@@ -77,6 +83,9 @@ impl LatentEncoder for Encoder {
     }
     fn latent_dim(&self) -> usize {
         Encoder::latent_dim(self)
+    }
+    fn host_encoder(&self) -> Option<HostEncoder> {
+        Some(Encoder::host_encoder(self))
     }
 }
 

@@ -43,7 +43,11 @@ impl RunPaths {
             ),
             _ => Error::io(&path, e),
         })?;
-        serde_json::from_str(&text)
+        let mut value: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| Error::config("run", format!("{}: {e}", path.display())))?;
+        drop_retired_options(&mut value)
+            .map_err(|field| Error::config(field, format!("{} uses an option procl no longer has (docs/research/ names the commit that has it)", path.display())))?;
+        serde_json::from_value(value)
             .map_err(|e| Error::config("run", format!("{}: {e}", path.display())))
     }
 
@@ -87,6 +91,68 @@ impl RunPaths {
     }
 }
 
+/// Options a `config.json` may still hold from a procl that had them, each with the value that
+/// meant "off" (`None`: any value, a setting of a term that is off unless its weight is set).
+const RETIRED_OPTIONS: &[(&str, Option<&str>)] = &[
+    ("risk_warmup_steps", Some("0")),
+    ("batch_group_size", Some("1")),
+    ("batch_group_window", None),
+    ("loss.detach_targets", Some("false")),
+    ("loss.normalise_risk", Some("false")),
+    ("loss.variance_axes", Some("\"coordinates\"")),
+    ("loss.decorrelation_weight", Some("0.0")),
+    ("loss.action_response_weight", Some("0.0")),
+    ("loss.action_response_turn_weight", Some("0.0")),
+    ("loss.action_response_grouping", Some("\"principal-axis\"")),
+    ("loss.action_response_sign_form", Some("\"diagonal\"")),
+    ("loss.separation_weight", Some("0.0")),
+    ("loss.separation_ratio", None),
+    ("loss.decoder_weight", Some("0.0")),
+    ("loss.decoder_noise", None),
+    ("loss.decoder_standardise", Some("false")),
+    ("loss.decoder_head_only", Some("false")),
+    ("loss.stretch_weight", Some("0.0")),
+    ("loss.stretch_ratio", None),
+    ("loss.state_supervision_weight", Some("0.0")),
+    ("model.feature_decoder_width", Some("0")),
+    ("model.dynamics.input", Some("{\"kind\":\"mlp\"}")),
+    ("model.dynamics.full_covariance", Some("false")),
+    ("model.encoder.keypoint_upsample", Some("1")),
+    ("model.encoder.polar_cut_deg", Some("null")),
+    ("model.encoder.relative_angles", Some("false")),
+    ("model.encoder.relative_reference_radius", Some("0.0")),
+    ("model.encoder.head.with_cartesian", Some("false")),
+    ("model.encoder.head.linear_base", Some("false")),
+];
+
+/// Removes the retired options that are off from a run's configuration, so runs trained by a
+/// procl that had them still load; `Err(field)` names one that is on.
+fn drop_retired_options(config: &mut serde_json::Value) -> std::result::Result<(), String> {
+    for (path, off) in RETIRED_OPTIONS {
+        let (parents, key) = path.rsplit_once('.').map_or(("", *path), |(p, k)| (p, k));
+        let parent = parents
+            .split('.')
+            .filter(|p| !p.is_empty())
+            .try_fold(&mut *config, |v, p| v.get_mut(p));
+        let Some(serde_json::Value::Object(map)) = parent else {
+            continue;
+        };
+        let Some(value) = map.get(key) else {
+            continue;
+        };
+        let is_off = off.is_none_or(|off| {
+            serde_json::from_str::<serde_json::Value>(off).is_ok_and(|off| {
+                off == *value || (off.as_f64().is_some() && off.as_f64() == value.as_f64())
+            })
+        });
+        if !is_off {
+            return Err((*path).to_string());
+        }
+        map.remove(key);
+    }
+    Ok(())
+}
+
 /// A trained model as [`RunPaths::load_trained`] rebuilds it.
 // Both variants are a few kB of tensor handles, built once per command: no reason to box.
 #[allow(clippy::large_enum_variant)]
@@ -95,4 +161,32 @@ pub enum TrainedModel {
     Procl(ProclModel),
     /// The NewtonianVAE.
     Nvae(NvaeModel),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn retired_options_that_are_off_are_dropped_and_one_that_is_on_is_named() {
+        let mut config: serde_json::Value = serde_json::from_str(
+            r#"{"risk_warmup_steps": 0, "loss": {"detach_targets": false, "separation_ratio": 0.1,
+                "kp": 10.0}, "model": {"dynamics": {"input": {"kind": "mlp"}, "hidden": 64},
+                "encoder": {"head": {"kind": "soft-argmax", "linear_base": false}}}}"#,
+        )
+        .unwrap();
+        drop_retired_options(&mut config).unwrap();
+        let want: serde_json::Value = serde_json::from_str(
+            r#"{"loss": {"kp": 10.0}, "model": {"dynamics": {"hidden": 64},
+                "encoder": {"head": {"kind": "soft-argmax"}}}}"#,
+        )
+        .unwrap();
+        assert_eq!(config, want);
+        let mut on: serde_json::Value =
+            serde_json::from_str(r#"{"loss": {"stretch_weight": 2.0}}"#).unwrap();
+        assert_eq!(
+            drop_retired_options(&mut on),
+            Err("loss.stretch_weight".to_string())
+        );
+    }
 }

@@ -1,0 +1,460 @@
+//! The encoder's inference path for control: a copy of a trained encoder's weights that maps
+//! one u8 frame to `h` on the host, with packed GEMMs (the `gemm` crate) over buffers kept
+//! between calls, no autodiff graph and no tensor allocation. It computes what
+//! [`super::Encoder::forward`] computes, in another summation order.
+
+use gemm::Parallelism;
+
+use crate::envs::FRAME_PX;
+
+/// A convolution as im2col + GEMM with zero padding on the input. The weight is held
+/// `[out, kh, kw, in]` row-major, so each kernel row of a patch is one contiguous copy from
+/// the `[pixel, channel]` input.
+#[derive(Debug, Clone)]
+pub(crate) struct HostConv {
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    pub channels: [usize; 2],
+    pub kernel: usize,
+    pub stride: usize,
+    pub padding: usize,
+}
+
+impl HostConv {
+    /// From burn's weight layout `[out, in, kh, kw]` (row-major) and the bias.
+    pub fn new(
+        weight: &[f32],
+        bias: Vec<f32>,
+        channels: [usize; 2],
+        kernel: usize,
+        stride: usize,
+        padding: usize,
+    ) -> Self {
+        let [cin, cout] = channels;
+        let k = kernel;
+        let mut reordered = vec![0.0; weight.len()];
+        for o in 0..cout {
+            for c in 0..cin {
+                for ky in 0..k {
+                    for kx in 0..k {
+                        reordered[((o * k + ky) * k + kx) * cin + c] =
+                            weight[((o * cin + c) * k + ky) * k + kx];
+                    }
+                }
+            }
+        }
+        Self {
+            weight: reordered,
+            bias,
+            channels,
+            kernel,
+            stride,
+            padding,
+        }
+    }
+
+    pub fn out_side(&self, side: usize) -> usize {
+        (side + 2 * self.padding - self.kernel) / self.stride + 1
+    }
+
+    /// `input` is `[side * side, in]` (pixels row-major, channels innermost); writes
+    /// `[out_side^2, out]` into `out`, with a ReLU when `relu`.
+    fn forward(
+        &self,
+        input: &[f32],
+        side: usize,
+        columns: &mut Vec<f32>,
+        out: &mut Vec<f32>,
+        relu: bool,
+    ) {
+        let [cin, cout] = self.channels;
+        let (k, s, p) = (self.kernel, self.stride, self.padding);
+        let o = self.out_side(side);
+        // The GEMM overwrites every entry.
+        out.resize(o * o * cout, 0.0);
+        if (k, s, p) == (1, 1, 0) {
+            // A pointwise convolution is the GEMM itself.
+            gemm_into(out, input, &self.weight, o * o, cin, cout);
+            add_bias(out, &self.bias, relu);
+            return;
+        }
+        let width = k * k * cin;
+        // Each call writes the same interior entries; the padding's stay 0 from the first.
+        if columns.len() != o * o * width {
+            columns.clear();
+            columns.resize(o * o * width, 0.0);
+        }
+        for oy in 0..o {
+            for ox in 0..o {
+                let row = &mut columns[(oy * o + ox) * width..][..width];
+                // The patch's columns inside the image: [x0, x1) of kx.
+                let left = (ox * s) as isize - p as isize;
+                let x0 = (-left).max(0) as usize;
+                let x1 = k.min((side as isize - left).max(0) as usize);
+                if x0 >= x1 {
+                    continue;
+                }
+                for ky in 0..k {
+                    let iy = (oy * s + ky) as isize - p as isize;
+                    if iy < 0 || iy >= side as isize {
+                        continue;
+                    }
+                    let from = (iy as usize * side) as isize + left + x0 as isize;
+                    let from = from as usize * cin;
+                    let len = (x1 - x0) * cin;
+                    copy_short(
+                        &mut row[(ky * k + x0) * cin..][..len],
+                        &input[from..][..len],
+                    );
+                }
+            }
+        }
+        gemm_into(out, columns, &self.weight, o * o, width, cout);
+        add_bias(out, &self.bias, relu);
+    }
+}
+
+/// Copies a few floats (a patch row of 9-128) in 4-wide moves: too short for memcpy's call
+/// to pay.
+fn copy_short(dst: &mut [f32], src: &[f32]) {
+    let mut dst_chunks = dst.chunks_exact_mut(4);
+    let mut src_chunks = src.chunks_exact(4);
+    for (d, s) in (&mut dst_chunks).zip(&mut src_chunks) {
+        let s: &[f32; 4] = s.try_into().expect("4-wide chunk");
+        let d: &mut [f32; 4] = d.try_into().expect("4-wide chunk");
+        *d = *s;
+    }
+    for (d, s) in dst_chunks
+        .into_remainder()
+        .iter_mut()
+        .zip(src_chunks.remainder())
+    {
+        *d = *s;
+    }
+}
+
+/// A dense layer `y = x W + b` with burn's `[in, out]` weight.
+#[derive(Debug, Clone)]
+pub(crate) struct HostLinear {
+    pub weight: Vec<f32>,
+    pub bias: Vec<f32>,
+    pub outputs: usize,
+}
+
+impl HostLinear {
+    fn forward(&self, x: &[f32], out: &mut Vec<f32>) {
+        out.clear();
+        out.extend_from_slice(&self.bias);
+        for (i, &xi) in x.iter().enumerate() {
+            let row = &self.weight[i * self.outputs..(i + 1) * self.outputs];
+            for (o, &w) in out.iter_mut().zip(row) {
+                *o += xi * w;
+            }
+        }
+    }
+}
+
+/// `out [m, n] = lhs [m, k] * rhs^T`, `rhs` row-major `[n, k]` (a weight `[out, in]`), on the
+/// calling thread.
+fn gemm_into(out: &mut [f32], lhs: &[f32], rhs: &[f32], m: usize, k: usize, n: usize) {
+    assert!(out.len() >= m * n && lhs.len() >= m * k && rhs.len() >= n * k);
+    // SAFETY: the asserts bound every index the strides below reach: dst `m x n` row-major,
+    // lhs `m x k` row-major, rhs read as `k x n` with column stride k (its row-major `n x k`).
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            out.as_mut_ptr(),
+            1,
+            n as isize,
+            false,
+            lhs.as_ptr(),
+            1,
+            k as isize,
+            rhs.as_ptr(),
+            k as isize,
+            1,
+            0.0,
+            1.0,
+            false,
+            false,
+            false,
+            Parallelism::None,
+        );
+    }
+}
+
+fn add_bias(out: &mut [f32], bias: &[f32], relu: bool) {
+    for row in out.chunks_exact_mut(bias.len()) {
+        for (v, b) in row.iter_mut().zip(bias) {
+            *v += b;
+            if relu && *v < 0.0 {
+                *v = 0.0;
+            }
+        }
+    }
+}
+
+/// The head after the trunk.
+#[derive(Debug, Clone)]
+pub(crate) enum HostHead {
+    /// PC3's: one more conv, flatten (channel-major), an MLP.
+    Mlp {
+        conv3: HostConv,
+        fc1: HostLinear,
+        fc2: HostLinear,
+    },
+    /// Spatial soft-argmax keypoints, each the attention's expectation of `grids` (per cell),
+    /// then the angles between keypoints (from the Cartesian grids) when `pairwise`, then an
+    /// optional tanh layer and the output layer.
+    Keypoints {
+        features: HostConv,
+        sharpness: Vec<f32>,
+        /// The per-cell values whose expectations are the keypoint features: `(x, y)` or the
+        /// polar `(angle, radius)`, `[cells]` each.
+        grids: [Vec<f32>; 2],
+        /// The Cartesian `(x, y)` grids, for the pairwise angles.
+        pairwise: Option<[Vec<f32>; 2]>,
+        hidden: Option<HostLinear>,
+        out: HostLinear,
+    },
+}
+
+/// A trained encoder's weights on the host (see the module's doc).
+#[derive(Debug, Clone)]
+pub struct HostEncoder {
+    pub(crate) conv1: HostConv,
+    pub(crate) conv2: HostConv,
+    pub(crate) head: HostHead,
+    /// The orientation `Q`, row-major `du x du`: `h = Q raw`.
+    pub(crate) transform: Vec<f32>,
+    /// Each byte's network input, `b / 255 - 0.5` (as `frames_to_tensor`).
+    pixel_values: [f32; 256],
+    buffers: Buffers,
+}
+
+#[derive(Debug, Clone, Default)]
+struct Buffers {
+    input: Vec<f32>,
+    /// im2col of each convolution, kept between calls (see [`HostConv::forward`]).
+    columns: [Vec<f32>; 4],
+    attention: Vec<f32>,
+    a: Vec<f32>,
+    b: Vec<f32>,
+    features: Vec<f32>,
+    hidden: Vec<f32>,
+    raw: Vec<f32>,
+}
+
+/// Distance from the centre within which an angle fades to 0 (as the encoder's polar grid).
+const FADE_RADIUS: f32 = 0.05;
+
+impl HostEncoder {
+    pub(crate) fn new(
+        conv1: HostConv,
+        conv2: HostConv,
+        head: HostHead,
+        transform: Vec<f32>,
+    ) -> Self {
+        Self {
+            conv1,
+            conv2,
+            head,
+            transform,
+            pixel_values: std::array::from_fn(|b| b as f32 / 255.0 - 0.5),
+            buffers: Buffers::default(),
+        }
+    }
+
+    /// Dimension of `h`.
+    pub fn latent_dim(&self) -> usize {
+        (self.transform.len() as f64).sqrt() as usize
+    }
+
+    /// `h` of one RGB u8 frame (64x64, row-major, channels innermost), written into `h`.
+    pub fn encode(&mut self, frame: &[u8], h: &mut [f64]) {
+        let buffers = &mut self.buffers;
+        // The network's input scaling: [0, 255] -> [-0.5, 0.5].
+        buffers.input.resize(frame.len(), 0.0);
+        for (x, &b) in buffers.input.iter_mut().zip(frame) {
+            *x = self.pixel_values[b as usize];
+        }
+        let side0 = FRAME_PX;
+        self.conv1.forward(
+            &buffers.input,
+            side0,
+            &mut buffers.columns[0],
+            &mut buffers.a,
+            true,
+        );
+        let side1 = self.conv1.out_side(side0);
+        self.conv2.forward(
+            &buffers.a,
+            side1,
+            &mut buffers.columns[1],
+            &mut buffers.b,
+            true,
+        );
+        let side2 = self.conv2.out_side(side1);
+        match &self.head {
+            HostHead::Mlp { conv3, fc1, fc2 } => {
+                conv3.forward(
+                    &buffers.b,
+                    side2,
+                    &mut buffers.columns[2],
+                    &mut buffers.a,
+                    true,
+                );
+                // Flattened channel-major, as the tensor `[n, c, y, x]` is.
+                let cells = conv3.out_side(side2).pow(2);
+                let channels = conv3.channels[1];
+                buffers.features.clear();
+                buffers.features.extend(
+                    (0..channels * cells).map(|i| buffers.a[(i % cells) * channels + i / cells]),
+                );
+                fc1.forward(&buffers.features, &mut buffers.hidden);
+                for v in buffers.hidden.iter_mut() {
+                    *v = v.max(0.0);
+                }
+                fc2.forward(&buffers.hidden, &mut buffers.raw);
+            }
+            HostHead::Keypoints {
+                features,
+                sharpness,
+                grids,
+                pairwise,
+                hidden,
+                out,
+            } => {
+                features.forward(
+                    &buffers.b,
+                    side2,
+                    &mut buffers.columns[3],
+                    &mut buffers.a,
+                    false,
+                );
+                let k = features.channels[1];
+                let cells = side2 * side2;
+                // The maps keypoint by keypoint, `[K, cells]`, so each softmax reads a row.
+                let maps = &mut buffers.b;
+                maps.resize(k * cells, 0.0);
+                for (cell, values) in buffers.a.chunks_exact(k).enumerate() {
+                    for (key, &v) in values.iter().enumerate() {
+                        maps[key * cells + cell] = v;
+                    }
+                }
+                let mut expectations = vec![[0f32; 4]; k];
+                let attention = &mut buffers.attention;
+                attention.resize(cells, 0.0);
+                for (key, expected) in expectations.iter_mut().enumerate() {
+                    let beta = sharpness[key];
+                    let row = &maps[key * cells..][..cells];
+                    let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v * beta));
+                    for (a, &v) in attention.iter_mut().zip(row) {
+                        *a = (v * beta - max).exp();
+                    }
+                    let total: f32 = attention.iter().sum();
+                    let dot = |grid: &[f32]| -> f32 {
+                        attention.iter().zip(grid).map(|(a, g)| a * g).sum()
+                    };
+                    let mut sums = [dot(&grids[0]), dot(&grids[1]), 0.0, 0.0];
+                    if let Some([x, y]) = pairwise {
+                        sums[2] = dot(x);
+                        sums[3] = dot(y);
+                    }
+                    *expected = sums.map(|s| s / total);
+                }
+                let feats = &mut buffers.features;
+                feats.clear();
+                feats.extend(expectations.iter().map(|e| e[0]));
+                feats.extend(expectations.iter().map(|e| e[1]));
+                if pairwise.is_some() {
+                    let fade = |e: &[f32; 4]| {
+                        let r2 = e[2] * e[2] + e[3] * e[3];
+                        r2 / (r2 + FADE_RADIUS * FADE_RADIUS)
+                    };
+                    for i in 0..k {
+                        for j in i + 1..k {
+                            let (a, b) = (&expectations[i], &expectations[j]);
+                            let cross = a[2] * b[3] - a[3] * b[2];
+                            let dot = a[2] * b[2] + a[3] * b[3];
+                            feats.push(cross.atan2(dot + 1e-12) * fade(a) * fade(b));
+                        }
+                    }
+                }
+                match hidden {
+                    Some(layer) => {
+                        layer.forward(feats, &mut buffers.hidden);
+                        for v in buffers.hidden.iter_mut() {
+                            *v = v.tanh();
+                        }
+                        out.forward(&buffers.hidden, &mut buffers.raw);
+                    }
+                    None => out.forward(feats, &mut buffers.raw),
+                }
+            }
+        }
+        let du = buffers.raw.len();
+        for (i, hi) in h.iter_mut().enumerate().take(du) {
+            *hi = (0..du)
+                .map(|j| self.transform[i * du + j] * buffers.raw[j])
+                .sum::<f32>() as f64;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::envs::{EnvKind, FRAME_BYTES};
+    use crate::model::{cpu_device, frames_to_tensor, to_vec};
+    use crate::train::{Method, Preset, TrainConfig};
+
+    /// The host encoder gives the tensor encoder's `h` for every shipped head: the point mass's
+    /// Cartesian keypoints, the reacher's polar keypoints with their pairwise angles over 32x32
+    /// cells and a tanh layer, and the paper's MLP head.
+    #[test]
+    fn host_encoding_matches_the_tensor_encoder() {
+        let device = cpu_device();
+        for (env, preset) in [
+            (EnvKind::PointMass, Preset::Procl),
+            (EnvKind::Reacher, Preset::Procl),
+            (EnvKind::Reacher, Preset::Paper),
+        ] {
+            let config = TrainConfig::preset(preset, Method::Procl, env);
+            let mut environment = env.make();
+            let frames: Vec<[u8; FRAME_BYTES]> = (0..6)
+                .map(|seed| {
+                    environment.reset(seed).expect("reset");
+                    let mut frame = [0u8; FRAME_BYTES];
+                    environment.render(&mut frame);
+                    frame
+                })
+                .collect();
+            let encoder = config.model.init(3, &device).expect("model").encoder;
+            // A cut away from the default and a signed permutation, as a trained encoder has.
+            let encoder = encoder.place_polar_cut(frames.iter().map(|f| &f[..]));
+            let mut model = crate::model::ProclModel {
+                encoder,
+                dynamics: config.model.dynamics.init(&device),
+            };
+            model = model.reorient_latent(&[0.0, -1.0, 1.0, 0.0]);
+            let encoder = model.encoder;
+            let want =
+                to_vec(encoder.forward(frames_to_tensor(frames.iter().map(|f| &f[..]), &device)));
+            let mut host = encoder.host_encoder();
+            for (k, frame) in frames.iter().enumerate() {
+                let mut h = [0.0; 2];
+                host.encode(frame, &mut h);
+                for i in 0..2 {
+                    let w = f64::from(want[2 * k + i]);
+                    assert!(
+                        (h[i] - w).abs() <= 1e-4 * w.abs().max(1.0),
+                        "{env} {preset:?} frame {k} dim {i}: host {} vs {w}",
+                        h[i]
+                    );
+                }
+            }
+        }
+    }
+}
