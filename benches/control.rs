@@ -1,8 +1,7 @@
 //! One latent PD control step from a 64x64 frame (encode the new frame + PD law), on one
 //! thread, and beside it one CEM-MPC step on the same latent (encode + plan through the
-//! learned dynamics, horizon 10): the run-time cost ratio ProCL is about. Target:
-//! PD <= 1 ms now, goal <= 0.3 ms. Weights are freshly initialised: the cost does not depend on
-//! their values.
+//! learned dynamics, horizon 10): the run-time cost ratio ProCL is about. Target: PD <= 0.1
+//! ms. Weights are freshly initialised: the cost does not depend on their values.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use procl::baselines::mpc::{CemMpc, MpcConfig, MpcPolicy};
