@@ -21,6 +21,12 @@ pub enum Error {
     #[error("{0} already exists; pass --force to overwrite it")]
     WouldClobber(PathBuf),
 
+    /// An output folder another procl process is writing.
+    #[error(
+        "{path} is being written by another procl (pid {pid}); wait for it to finish or choose another folder"
+    )]
+    Busy { path: PathBuf, pid: String },
+
     /// An operating-system error on a named file.
     /// (The OS error is part of the message, not a `source`, so chains print it once.)
     #[error("{path}: {cause}")]

@@ -1,5 +1,5 @@
 //! Safe file output: refuse to clobber, write to a temporary sibling, then rename into place;
-//! and appending lines to logs.
+//! one writer per output folder; and appending lines to logs.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -81,4 +81,69 @@ pub fn append_line(path: &Path, header: &str, line: &str) -> Result<()> {
         .open(path)
         .and_then(|mut f| f.write_all(text.as_bytes()))
         .map_err(|e| Error::io(path, e))
+}
+
+/// The name of the lock file in an output folder.
+const LOCK_FILE: &str = ".procl.lock";
+
+/// An exclusive advisory lock on an output folder, held while it lives: one writer per folder.
+/// The operating system releases it when the process exits, however it exits, so a killed
+/// writer never leaves the folder locked.
+#[derive(Debug)]
+pub struct FolderLock {
+    _file: File,
+}
+
+impl FolderLock {
+    /// Creates `dir` if needed and locks it, or fails with [`Error::Busy`] naming the holder's
+    /// pid when another process holds it.
+    pub fn acquire(dir: &Path) -> Result<Self> {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let path = dir.join(LOCK_FILE);
+        let mut file = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .read(true)
+            .write(true)
+            .open(&path)
+            .map_err(|e| Error::io(&path, e))?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                let pid = std::fs::read_to_string(&path)
+                    .ok()
+                    .map(|s| s.trim().to_string())
+                    .filter(|s| !s.is_empty())
+                    .unwrap_or_else(|| "unknown".into());
+                return Err(Error::Busy {
+                    path: dir.to_path_buf(),
+                    pid,
+                });
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(Error::io(&path, e)),
+        }
+        use std::io::Seek;
+        file.set_len(0)
+            .and_then(|()| file.seek(std::io::SeekFrom::Start(0)))
+            .and_then(|_| writeln!(file, "{}", std::process::id()))
+            .map_err(|e| Error::io(&path, e))?;
+        Ok(Self { _file: file })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_locked_folder_refuses_a_second_writer_until_the_first_lets_go() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let out = dir.path().join("run");
+        let first = FolderLock::acquire(&out).expect("first writer");
+        let err = FolderLock::acquire(&out).unwrap_err().to_string();
+        let pid = std::process::id().to_string();
+        assert!(err.contains("run") && err.contains(&pid), "{err}");
+        drop(first);
+        FolderLock::acquire(&out).expect("free again");
+    }
 }

@@ -28,7 +28,7 @@ pub mod runner;
 pub mod train;
 
 pub use error::{Error, Result};
-pub use fsutil::{check_writable, write_atomically};
+pub use fsutil::{FolderLock, check_writable, write_atomically};
 pub use image_io::RgbImage;
 pub use train::checkpoint::{
     Adam, CheckpointMeta, load_checkpoint, read_checkpoint_meta, save_checkpoint,

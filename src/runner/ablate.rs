@@ -131,6 +131,10 @@ pub fn run_grid(
     mut progress: impl FnMut(&str, u64, u64, u64, &StepValues),
 ) -> Result<Vec<CellResult>> {
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    // Training writes the grid's folder; a report from what is there only reads it.
+    let _writer = train_missing
+        .then(|| crate::fsutil::FolderLock::acquire(out))
+        .transpose()?;
     let jsonl = out.join("ablation.jsonl");
     let mut done: Vec<CellResult> = std::fs::read_to_string(&jsonl)
         .unwrap_or_default()

@@ -83,7 +83,7 @@ pub struct DemoResult {
 /// Runs the demo; `log` receives one line per stage.
 pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoResult> {
     let env = EnvKind::PointMass;
-    std::fs::create_dir_all(&config.out).map_err(|e| Error::io(&config.out, e))?;
+    let _writer = crate::fsutil::FolderLock::acquire(&config.out)?;
     let data_path = config.out.join("point-mass.npz");
     let clock = Instant::now();
     let collect_config = CollectConfig {

@@ -240,6 +240,10 @@ pub fn run_experiment(
 ) -> Result<Summary> {
     config.validate()?;
     std::fs::create_dir_all(&config.out).map_err(|e| Error::io(&config.out, e))?;
+    // Running stages writes the folder; rebuilding the report from it only reads what is there.
+    let _writer = (!report_only)
+        .then(|| crate::fsutil::FolderLock::acquire(&config.out))
+        .transpose()?;
     let stages_path = config.out.join("stages.json");
     let times = match std::fs::read_to_string(&stages_path) {
         Ok(text) => serde_json::from_str(&text).map_err(|e| {

@@ -183,7 +183,7 @@ fn run_training<O: Objective>(
 ) -> Result<TrainSummary> {
     let mut adam = Adam::default();
     let mut start = 0;
-    std::fs::create_dir_all(&run.dir).map_err(|e| Error::io(&run.dir, e))?;
+    let _writer = crate::fsutil::FolderLock::acquire(&run.dir)?;
     if resume {
         let saved = run.load_config()?;
         if &saved != config {

@@ -257,3 +257,47 @@ fn demonstrate_and_track_reject_bad_input() {
         "config.json",
     );
 }
+
+/// One writer per output folder: while a folder is locked (here by this test process), a
+/// second `procl train`, `ablate` or `demo` into it is refused with one line naming the folder
+/// and the holder's pid, and nothing in it is touched; readers keep working.
+#[test]
+fn a_second_writer_into_a_locked_folder_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let npz = dir.path().join("pm.npz");
+    succeeds(&[
+        "collect",
+        "--env",
+        "point-mass",
+        "--transitions",
+        "60",
+        "--episode-len",
+        "20",
+        "--out",
+        path_str(&npz),
+    ]);
+    let run = dir.path().join("run");
+    let lock = procl::FolderLock::acquire(&run).unwrap();
+    let pid = std::process::id().to_string();
+    let train = [
+        "train",
+        "--data",
+        path_str(&npz),
+        "--out",
+        path_str(&run),
+        "--steps",
+        "2",
+    ];
+    fails_with(&train, &pid);
+    fails_with(&train, path_str(&run));
+    assert!(
+        !run.join("config.json").exists(),
+        "the refused writer wrote"
+    );
+    fails_with(&["demo", "--quick", "--out", path_str(&run)], &pid);
+    // Readers do not take the lock.
+    succeeds(&["info", "--data", path_str(&npz)]);
+    drop(lock);
+    succeeds(&train);
+    assert!(run.join("model.safetensors").exists());
+}
