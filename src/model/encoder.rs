@@ -441,19 +441,10 @@ impl Encoder {
         let attention = softmax(logits, 2); // [n, K, cells]
         // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
         // angle and radius of the cells about the image centre.
-        let (grid_x, grid_y) = pixel_grid(rows, cols, &attention.device());
+        let ([first, second], [grid_x, grid_y]) =
+            head.coordinate_grids(rows, cols, &attention.device());
         let expected = |grid: Tensor<3>| (attention.clone() * grid).sum_dim(2); // [n, K, 1]
-        let coordinates = match &head.polar_axis {
-            Some(axis) => {
-                let axis = axis.val();
-                let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
-                let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
-                let (x, y) = (grid_x.clone(), grid_y.clone());
-                let (angle, radius) = polar_grid(x, y, cos_m, sin_m, head.cut_fade_rad);
-                vec![expected(angle), expected(radius)]
-            }
-            None => vec![expected(grid_x.clone()), expected(grid_y.clone())],
-        };
+        let coordinates = vec![expected(first), expected(second)];
         // The angles between polar keypoints come from their expected (x, y).
         let cartesian = head
             .pairwise_angles
@@ -486,18 +477,8 @@ impl Encoder {
                 let side = [&conv1, &conv2].iter().fold(FRAME_PX, |s, c| {
                     (s + 2 * c.padding - c.kernel) / c.stride + 1
                 });
-                let (grid_x, grid_y) = pixel_grid(side, side, &device);
-                let grids = match &head.polar_axis {
-                    Some(axis) => {
-                        let axis = axis.val();
-                        let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
-                        let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
-                        let (x, y) = (grid_x.clone(), grid_y.clone());
-                        let (angle, radius) = polar_grid(x, y, cos_m, sin_m, head.cut_fade_rad);
-                        [super::to_vec(angle), super::to_vec(radius)]
-                    }
-                    None => [super::to_vec(grid_x.clone()), super::to_vec(grid_y.clone())],
-                };
+                let (grids, [grid_x, grid_y]) = head.coordinate_grids(side, side, &device);
+                let grids = grids.map(super::to_vec);
                 HostHead::Keypoints {
                     features,
                     sharpness: super::to_vec(head.log_sharpness.val().exp()),
@@ -551,6 +532,30 @@ fn host_linear(layer: &Linear) -> HostLinear {
 }
 
 impl KeypointHead {
+    /// The per-cell values whose expectations under a keypoint's attention are its features
+    /// (the polar angle and radius about the centre, or the cell's `(x, y)`), and the cells'
+    /// `(x, y)`: `[1, 1, rows * cols]` each.
+    fn coordinate_grids(
+        &self,
+        rows: usize,
+        cols: usize,
+        device: &Device,
+    ) -> ([Tensor<3>; 2], [Tensor<3>; 2]) {
+        let (grid_x, grid_y) = pixel_grid(rows, cols, device);
+        let features = match &self.polar_axis {
+            Some(axis) => {
+                let axis = axis.val();
+                let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
+                let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
+                let (x, y) = (grid_x.clone(), grid_y.clone());
+                let (angle, radius) = polar_grid(x, y, cos_m, sin_m, self.cut_fade_rad);
+                [angle, radius]
+            }
+            None => [grid_x.clone(), grid_y.clone()],
+        };
+        (features, [grid_x, grid_y])
+    }
+
     /// The keypoint features `[n, F]` (the K angles, the K radii, then any extras) -> `h`.
     fn latent_from_features(&self, features: Tensor<2>) -> Tensor<2> {
         match &self.hidden {

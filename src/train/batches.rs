@@ -164,17 +164,7 @@ mod tests {
     use super::*;
     use crate::envs::EnvKind;
     use crate::losses::{LOSS_NAMES, StepValues, procl_loss};
-    use crate::train::{Method, Preset};
-
-    /// `transitions` random-control transitions of `env` in episodes of 20 steps.
-    fn tiny_dataset(env: EnvKind, seed: u64, transitions: usize) -> Dataset {
-        let config = crate::data::CollectConfig {
-            transitions,
-            episode_len: 20,
-            ..crate::data::CollectConfig::new(env, seed)
-        };
-        crate::data::collect(&config, |_| {}).expect("collect")
-    }
+    use crate::train::{Method, Preset, tiny_dataset};
 
     #[test]
     fn k_step_drive_is_what_an_euler_latent_responds_to() {

@@ -316,19 +316,21 @@ fn truncate_metrics(path: &Path, step: u64, header: &str) -> Result<()> {
     })
 }
 
+/// `transitions` random-control transitions of `env` in episodes of 20 steps (unit tests).
+#[cfg(test)]
+pub(crate) fn tiny_dataset(env: crate::envs::EnvKind, seed: u64, transitions: usize) -> Dataset {
+    let config = crate::data::CollectConfig {
+        transitions,
+        episode_len: 20,
+        ..crate::data::CollectConfig::new(env, seed)
+    };
+    crate::data::collect(&config, |_| {}).expect("collect")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::envs::EnvKind;
-
-    fn tiny_dataset(env: EnvKind, seed: u64, transitions: usize) -> Dataset {
-        let config = crate::data::CollectConfig {
-            transitions,
-            episode_len: 20,
-            ..crate::data::CollectConfig::new(env, seed)
-        };
-        crate::data::collect(&config, |_| {}).expect("collect")
-    }
 
     #[test]
     fn resumed_metrics_keep_steps_up_to_the_checkpoint_under_the_current_header() {
