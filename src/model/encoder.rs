@@ -301,7 +301,7 @@ pub(crate) const POLAR_AXIS: &str = "polar_axis";
 
 /// Distance from the centre (image half-widths) within which a cell's angle fades to 0: the
 /// angle of a point at the pivot is undefined.
-const POLAR_FADE_RADIUS: f32 = 0.05;
+pub(super) const POLAR_FADE_RADIUS: f32 = 0.05;
 
 /// The encoder `e`. Exactly one of the heads is present.
 #[derive(Module, Debug)]
@@ -474,9 +474,7 @@ impl Encoder {
             (None, Some(head)) => {
                 let features = host_conv(&head.features);
                 // The trunk's output side: 64 pixels through conv1 and conv2.
-                let side = [&conv1, &conv2].iter().fold(FRAME_PX, |s, c| {
-                    (s + 2 * c.padding - c.kernel) / c.stride + 1
-                });
+                let side = conv2.out_side(conv1.out_side(FRAME_PX));
                 let (grids, [grid_x, grid_y]) = head.coordinate_grids(side, side, &device);
                 let grids = grids.map(super::to_vec);
                 HostHead::Keypoints {

@@ -5,6 +5,7 @@
 
 use gemm::Parallelism;
 
+use super::encoder::POLAR_FADE_RADIUS;
 use crate::envs::FRAME_PX;
 
 /// A convolution as im2col + GEMM with zero padding on the input. The weight is held
@@ -229,7 +230,7 @@ pub struct HostEncoder {
     pub(crate) head: HostHead,
     /// The orientation `Q`, row-major `du x du`: `h = Q raw`.
     pub(crate) transform: Vec<f32>,
-    /// Each byte's network input, `b / 255 - 0.5` (as `frames_to_tensor`).
+    /// Each byte's network input ([`super::pixel_input`], looked up once per byte value).
     pixel_values: [f32; 256],
     buffers: Buffers,
 }
@@ -240,15 +241,14 @@ struct Buffers {
     /// im2col of each convolution, kept between calls (see [`HostConv::forward`]).
     columns: [Vec<f32>; 4],
     attention: Vec<f32>,
+    /// Per keypoint: the expectations of the two feature grids and of `(x, y)`.
+    expectations: Vec<[f32; 4]>,
     a: Vec<f32>,
     b: Vec<f32>,
     features: Vec<f32>,
     hidden: Vec<f32>,
     raw: Vec<f32>,
 }
-
-/// Distance from the centre within which an angle fades to 0 (as the encoder's polar grid).
-const FADE_RADIUS: f32 = 0.05;
 
 impl HostEncoder {
     pub(crate) fn new(
@@ -262,7 +262,7 @@ impl HostEncoder {
             conv2,
             head,
             transform,
-            pixel_values: std::array::from_fn(|b| b as f32 / 255.0 - 0.5),
+            pixel_values: std::array::from_fn(|b| super::pixel_input(b as u8)),
             buffers: Buffers::default(),
         }
     }
@@ -275,7 +275,6 @@ impl HostEncoder {
     /// `h` of one RGB u8 frame (64x64, row-major, channels innermost), written into `h`.
     pub fn encode(&mut self, frame: &[u8], h: &mut [f64]) {
         let buffers = &mut self.buffers;
-        // The network's input scaling: [0, 255] -> [-0.5, 0.5].
         buffers.input.resize(frame.len(), 0.0);
         for (x, &b) in buffers.input.iter_mut().zip(frame) {
             *x = self.pixel_values[b as usize];
@@ -344,7 +343,8 @@ impl HostEncoder {
                         maps[key * cells + cell] = v;
                     }
                 }
-                let mut expectations = vec![[0f32; 4]; k];
+                let expectations = &mut buffers.expectations;
+                expectations.resize(k, [0.0; 4]);
                 let attention = &mut buffers.attention;
                 attention.resize(cells, 0.0);
                 for (key, expected) in expectations.iter_mut().enumerate() {
@@ -372,7 +372,7 @@ impl HostEncoder {
                 if pairwise.is_some() {
                     let fade = |e: &[f32; 4]| {
                         let r2 = e[2] * e[2] + e[3] * e[3];
-                        r2 / (r2 + FADE_RADIUS * FADE_RADIUS)
+                        r2 / (r2 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS)
                     };
                     for i in 0..k {
                         for j in i + 1..k {

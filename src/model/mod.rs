@@ -43,6 +43,11 @@ pub fn device_by_name(name: &str) -> crate::Result<Device> {
     }
 }
 
+/// A pixel byte as the network sees it: [0, 255] -> [-0.5, 0.5].
+pub(crate) fn pixel_input(byte: u8) -> f32 {
+    byte as f32 / 255.0 - 0.5
+}
+
 /// Converts RGB u8 frames to the network input `[n, 3, 64, 64]`, scaled to [-0.5, 0.5].
 /// This is the only place pixels are normalised.
 pub fn frames_to_tensor<'a>(
@@ -56,7 +61,7 @@ pub fn frames_to_tensor<'a>(
         let out = &mut data[k * FRAME_BYTES..(k + 1) * FRAME_BYTES];
         for (p, rgb) in frame.chunks_exact(3).enumerate() {
             for c in 0..3 {
-                out[c * plane + p] = rgb[c] as f32 / 255.0 - 0.5;
+                out[c * plane + p] = pixel_input(rgb[c]);
             }
         }
     }
