@@ -6,6 +6,7 @@ use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::{relu, softmax, tanh};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
+use super::POLAR_FADE_RADIUS;
 use super::host_encoder::{HostConv, HostEncoder, HostHead, HostLinear};
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 use crate::error::{Error, Result};
@@ -298,10 +299,6 @@ pub struct KeypointHead {
 
 /// Name of the polar head's non-trained axis parameter.
 pub(crate) const POLAR_AXIS: &str = "polar_axis";
-
-/// Distance from the centre (image half-widths) within which a cell's angle fades to 0: the
-/// angle of a point at the pivot is undefined.
-pub(super) const POLAR_FADE_RADIUS: f32 = 0.05;
 
 /// The encoder `e`. Exactly one of the heads is present.
 #[derive(Module, Debug)]

@@ -5,7 +5,7 @@
 
 use gemm::Parallelism;
 
-use super::encoder::POLAR_FADE_RADIUS;
+use super::POLAR_FADE_RADIUS;
 use crate::envs::FRAME_PX;
 
 /// A convolution as im2col + GEMM with zero padding on the input. The weight is held

@@ -43,6 +43,10 @@ pub fn device_by_name(name: &str) -> crate::Result<Device> {
     }
 }
 
+/// Distance from the image centre (image half-widths) within which a polar keypoint's angle
+/// fades to 0: the angle of a point at the pivot is undefined.
+pub(crate) const POLAR_FADE_RADIUS: f32 = 0.05;
+
 /// A pixel byte as the network sees it: [0, 255] -> [-0.5, 0.5].
 pub(crate) fn pixel_input(byte: u8) -> f32 {
     byte as f32 / 255.0 - 0.5
