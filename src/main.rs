@@ -81,6 +81,10 @@ enum Command {
         /// TOML file over the preset (`preset = "paper"|"procl"`, any config field).
         #[arg(long)]
         config: Option<PathBuf>,
+        /// Custom data only: train with this environment's recipe (point-mass | reacher |
+        /// fetch) instead of the generic one.
+        #[arg(long)]
+        preset_env: Option<String>,
         /// Override the config's seed.
         #[arg(long)]
         seed: Option<u64>,
@@ -349,9 +353,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let dataset = procl::data::Dataset::load(&data)?;
             let m = &dataset.meta;
             println!(
-                "{}: {} ({}), {} episodes x {} steps = {} transitions, dt {} s, seed {}, du {}, dq {}",
+                "{}: {} ({}), {} episodes x {} steps = {} transitions, dt {} s, seed {}, du {}, {}",
                 data.display(),
-                m.env,
+                m.source_name(),
                 m.source,
                 dataset.episodes(),
                 dataset.steps(),
@@ -359,7 +363,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 m.control_dt_s,
                 m.seed,
                 dataset.action_dim(),
-                dataset.config_dim()
+                dataset
+                    .config_dim()
+                    .map_or("no true states".into(), |dq| format!("dq {dq}"))
             );
         }
         Command::Train {
@@ -367,12 +373,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             method,
             out,
             config,
+            preset_env,
             seed,
             steps,
             resume,
             device,
         } => {
             let dataset = procl::data::Dataset::load(&data)?;
+            let recipe = preset_env.map(|e| e.parse::<EnvKind>()).transpose()?;
+            let base = procl::train::ConfigBase::for_dataset(&dataset, recipe)?;
             let method = method.map(|m| m.parse::<Method>()).transpose()?;
             let mut table = match &config {
                 Some(path) => {
@@ -389,8 +398,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             if let Some(steps) = steps {
                 table.insert("steps".into(), toml::Value::Integer(steps as i64));
             }
-            let config = procl::train::config_from_table(table, dataset.meta.env, method)
-                .with_context(|| {
+            let config =
+                procl::train::config_from_table(table, base, method).with_context(|| {
                     format!(
                         "configuration{}",
                         config
@@ -418,7 +427,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             if let Some(v) = summary.last {
                 println!("final losses: {v}");
             }
-            let d = procl::eval::write_diagnostics(&run)?;
+            let Some(d) = procl::eval::write_diagnostics(&run)? else {
+                println!(
+                    "latent diagnostics skipped: they sweep the true states of a procl environment, and this run's data is custom"
+                );
+                return Ok(());
+            };
             println!(
                 "latent: linear R^2 of q from h = {:.3}, 5-NN R^2 = {:.3}, folded pairs {:.3}%, pairs PD pushes away {}, locally unstable {}, near-singular {}, det(q -> h map) = {} (latent_map.png, diagnostics.json)",
                 d.linear_r2,
@@ -458,7 +472,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     if own == "pd" { " or mpc" } else { "" }
                 ),
             };
-            let mut protocol = ReachConfig::for_env(config.env, seed);
+            let mut protocol = ReachConfig::for_env(config.simulated_env(&run)?, seed);
             if episodes == 0 {
                 anyhow::bail!("--episodes must be at least 1");
             }

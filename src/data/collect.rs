@@ -126,13 +126,13 @@ impl Recording {
     pub(crate) fn finish(self, control_dt_s: f64, seed: u64, source: String) -> Result<Dataset> {
         let meta = DatasetMeta {
             format_version: DATASET_FORMAT_VERSION,
-            env: self.env,
+            env: Some(self.env),
             control_dt_s,
             seed,
             source,
             procl_version: env!("CARGO_PKG_VERSION").into(),
         };
-        Dataset::new(meta, self.obs, self.actions, self.states)
+        Dataset::new(meta, self.obs, self.actions, Some(self.states))
     }
 }
 
@@ -240,7 +240,8 @@ mod tests {
                 ..CollectConfig::new(EnvKind::Reacher, 0)
             };
             let data = collect(&config, |_| {}).unwrap();
-            let shoulder = data.states.index_axis(ndarray::Axis(2), 0);
+            let states = data.states.unwrap();
+            let shoulder = states.index_axis(ndarray::Axis(2), 0);
             let near = shoulder
                 .iter()
                 .filter(|q| q.abs().to_degrees() > 150.0)

@@ -6,4 +6,4 @@ mod store;
 
 pub(crate) use collect::Recording;
 pub use collect::{CollectConfig, STRIP_STRIDE, collect, render_strip};
-pub use store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta};
+pub use store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta, IMPORTED_SOURCE};

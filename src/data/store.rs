@@ -1,9 +1,10 @@
 //! The dataset on disk: one `.npz` readable by `numpy.load`, validated on load.
 //!
-//! Arrays: `obs` u8 `[episodes, T+1, 64, 64, 3]`, `actions` f32 `[episodes, T, du]`,
-//! `states` f32 `[episodes, T+1, 2 dq]` (`q` then `qd`), `meta` u8 `[n]` holding the metadata as
-//! UTF-8 JSON (`json.loads(bytes(np.load(f)["meta"]))`), and for convenience the scalars
-//! `control_dt_s` f64 and `seed` u64.
+//! Arrays: `obs` u8 `[episodes, T+1, 64, 64, 3]`, `actions` f32 `[episodes, T, du]` in
+//! [-1, 1], the scalar `control_dt_s` f64, and optionally `states` f32 `[episodes, T+1, 2 dq]`
+//! (`q` then `qd`), `meta` u8 `[n]` holding the metadata as UTF-8 JSON
+//! (`json.loads(bytes(np.load(f)["meta"]))`) and the scalar `seed` u64. The first three are a
+//! whole dataset: frames and actions recorded from any system train as `custom` data.
 
 use std::fs::File;
 use std::io::{BufReader, Read, Seek};
@@ -12,7 +13,7 @@ use std::path::Path;
 use ndarray::{Array0, Array1, Array3, Array5, ArrayBase, Dimension};
 use ndarray_npy::{NpzReader, NpzWriter, ReadableElement};
 
-use crate::envs::{EnvKind, FRAME_PX};
+use crate::envs::{EnvKind, FRAME_PX, source_name};
 use crate::error::{Error, Result};
 use crate::fsutil::write_atomically;
 
@@ -24,16 +25,40 @@ pub const DATASET_FORMAT_VERSION: u32 = 1;
 pub struct DatasetMeta {
     /// [`DATASET_FORMAT_VERSION`] at writing time.
     pub format_version: u32,
-    /// Environment the frames come from.
-    pub env: EnvKind,
+    /// Environment the frames come from; `None` (written `custom`) for data from elsewhere.
+    #[serde(with = "crate::envs::env_or_custom")]
+    pub env: Option<EnvKind>,
     /// Time between consecutive frames, seconds.
     pub control_dt_s: f64,
     /// Seed the data was generated from.
     pub seed: u64,
-    /// How the actions were chosen: `random-control` or `demonstration:<path shape>`.
+    /// How the actions were chosen: `random-control`, `demonstration:<path shape>`, or
+    /// [`IMPORTED_SOURCE`] for a file without metadata.
     pub source: String,
     /// procl version that wrote the file.
     pub procl_version: String,
+}
+
+/// The `source` of a dataset whose file carries no `meta` array.
+pub const IMPORTED_SOURCE: &str = "imported";
+
+impl DatasetMeta {
+    /// Metadata of frames and actions from elsewhere, sampled every `control_dt_s` seconds.
+    pub fn custom(control_dt_s: f64) -> Self {
+        Self {
+            format_version: DATASET_FORMAT_VERSION,
+            env: None,
+            control_dt_s,
+            seed: 0,
+            source: IMPORTED_SOURCE.into(),
+            procl_version: String::new(),
+        }
+    }
+
+    /// The environment's name, or `custom`.
+    pub fn source_name(&self) -> &'static str {
+        source_name(self.env)
+    }
 }
 
 /// A validated dataset in memory.
@@ -44,8 +69,9 @@ pub struct Dataset {
     pub obs: Array5<u8>,
     /// `[episodes, T, du]` actions in [-1, 1]; `actions[e, t]` moves frame `t` to frame `t+1`.
     pub actions: Array3<f32>,
-    /// `[episodes, T+1, 2 dq]` true states `(q, qd)`.
-    pub states: Array3<f32>,
+    /// `[episodes, T+1, 2 dq]` true states `(q, qd)`, when the source knows them; every
+    /// diagnostic that compares the latent with the state needs them.
+    pub states: Option<Array3<f32>>,
 }
 
 impl Dataset {
@@ -54,9 +80,15 @@ impl Dataset {
         meta: DatasetMeta,
         obs: Array5<u8>,
         actions: Array3<f32>,
-        states: Array3<f32>,
+        states: Option<Array3<f32>>,
     ) -> Result<Self> {
-        Self::validate(Path::new("<memory>"), &meta, &obs, &actions, &states)?;
+        Self::validate(
+            Path::new("<memory>"),
+            &meta,
+            &obs,
+            &actions,
+            states.as_ref(),
+        )?;
         Ok(Self {
             meta,
             obs,
@@ -77,9 +109,15 @@ impl Dataset {
     pub fn action_dim(&self) -> usize {
         self.actions.shape()[2]
     }
-    /// Configuration dimension `dq` (states hold `q` and `qd`).
-    pub fn config_dim(&self) -> usize {
-        self.states.shape()[2] / 2
+    /// Configuration dimension `dq` (states hold `q` and `qd`), when the states are known.
+    pub fn config_dim(&self) -> Option<usize> {
+        self.states.as_ref().map(|s| s.shape()[2] / 2)
+    }
+    /// The configuration `q` at step `t` of `episode`, when the states are known.
+    pub fn config(&self, episode: usize, t: usize) -> Option<Vec<f64>> {
+        let states = self.states.as_ref()?;
+        let dq = states.shape()[2] / 2;
+        Some((0..dq).map(|i| states[[episode, t, i]] as f64).collect())
     }
     /// Total transitions.
     pub fn transitions(&self) -> usize {
@@ -90,12 +128,6 @@ impl Dataset {
         let start = (episode * (self.steps() + 1) + t) * crate::envs::FRAME_BYTES;
         // `obs` is always in standard layout (built by `zeros` or read from npy in C order).
         &self.obs.as_slice().unwrap_or(&[])[start..start + crate::envs::FRAME_BYTES]
-    }
-    /// The configuration `q` at step `t` of `episode`.
-    pub fn config(&self, episode: usize, t: usize) -> Vec<f64> {
-        (0..self.config_dim())
-            .map(|i| self.states[[episode, t, i]] as f64)
-            .collect()
     }
 
     /// Writes the dataset to `path` atomically; refuses to replace a file unless `force`.
@@ -108,7 +140,9 @@ impl Dataset {
             let mut npz = NpzWriter::new_compressed(file);
             npz.add_array("obs", &self.obs).map_err(npz_err)?;
             npz.add_array("actions", &self.actions).map_err(npz_err)?;
-            npz.add_array("states", &self.states).map_err(npz_err)?;
+            if let Some(states) = &self.states {
+                npz.add_array("states", states).map_err(npz_err)?;
+            }
             npz.add_array("meta", &Array1::from(meta_json))
                 .map_err(npz_err)?;
             npz.add_array(
@@ -133,14 +167,26 @@ impl Dataset {
         })?;
         let mut npz = NpzReader::new(BufReader::new(file))
             .map_err(|e| Error::dataset(path, format!("not a readable .npz archive ({e})")))?;
-        let meta_bytes: Array1<u8> = read_array(&mut npz, path, "meta")?;
-        let meta: DatasetMeta = serde_json::from_slice(meta_bytes.as_slice().unwrap_or(&[]))
-            .map_err(|e| {
-                Error::dataset(
-                    path,
-                    format!("array `meta` is not valid metadata JSON: {e}"),
-                )
-            })?;
+        let meta = match read_optional_array::<_, u8, ndarray::Ix1>(&mut npz, path, "meta")? {
+            Some(bytes) => {
+                serde_json::from_slice(bytes.as_slice().unwrap_or(&[])).map_err(|e| {
+                    Error::dataset(
+                        path,
+                        format!("array `meta` is not valid metadata JSON: {e}"),
+                    )
+                })?
+            }
+            None => {
+                let dt: Array0<f64> = read_array(&mut npz, path, "control_dt_s")?;
+                let mut meta = DatasetMeta::custom(dt.into_scalar());
+                if let Some(seed) =
+                    read_optional_array::<_, u64, ndarray::Ix0>(&mut npz, path, "seed")?
+                {
+                    meta.seed = seed.into_scalar();
+                }
+                meta
+            }
+        };
         if meta.format_version != DATASET_FORMAT_VERSION {
             return Err(Error::dataset(
                 path,
@@ -152,14 +198,14 @@ impl Dataset {
         }
         let obs: Array5<u8> = read_array(&mut npz, path, "obs")?;
         let actions: Array3<f32> = read_array(&mut npz, path, "actions")?;
-        let states: Array3<f32> = read_array(&mut npz, path, "states")?;
+        let states: Option<Array3<f32>> = read_optional_array(&mut npz, path, "states")?;
         // Arrays read from .npy in Fortran order would not be in standard layout.
         let obs = if obs.is_standard_layout() {
             obs
         } else {
             obs.as_standard_layout().to_owned()
         };
-        Self::validate(path, &meta, &obs, &actions, &states)?;
+        Self::validate(path, &meta, &obs, &actions, states.as_ref())?;
         Ok(Self {
             meta,
             obs,
@@ -173,54 +219,95 @@ impl Dataset {
         meta: &DatasetMeta,
         obs: &Array5<u8>,
         actions: &Array3<f32>,
-        states: &Array3<f32>,
+        states: Option<&Array3<f32>>,
     ) -> Result<()> {
-        let env = meta.env.make();
-        let (du, dq) = (env.action_dim(), env.config_dim());
-        let (o, a, s) = (obs.shape(), actions.shape(), states.shape());
+        let (o, a) = (obs.shape(), actions.shape());
         let fail = |message: String| Err(Error::dataset(path, message));
-        if a[0] == 0 || a[1] < 2 {
+        if a[0] == 0 || a[1] < 2 || a[2] == 0 {
             return fail(format!(
-                "`actions` has shape {a:?}; need at least 1 episode of 2 steps"
+                "`actions` has shape {a:?}; need at least 1 episode of 2 steps (a training sample spans 3 frames) and 1 action component"
             ));
         }
         if o != [a[0], a[1] + 1, FRAME_PX, FRAME_PX, 3] {
             return fail(format!(
-                "`obs` has shape {o:?}, expected [{}, {}, {FRAME_PX}, {FRAME_PX}, 3] to match `actions` {a:?}",
+                "`obs` has shape {o:?}, expected [{}, {}, {FRAME_PX}, {FRAME_PX}, 3] (64x64 RGB frames, one more per episode than `actions` {a:?}; resize other frames before saving)",
                 a[0],
                 a[1] + 1
             ));
         }
-        if a[2] != du {
-            return fail(format!(
-                "`actions` has {} components per step; {} takes {du}",
-                a[2], meta.env
-            ));
-        }
-        if s != [a[0], a[1] + 1, 2 * dq] {
-            return fail(format!(
-                "`states` has shape {s:?}, expected [{}, {}, {}]",
-                a[0],
-                a[1] + 1,
-                2 * dq
-            ));
+        if let Some(env) = meta.env {
+            let du = env.make().action_dim();
+            if a[2] != du {
+                return fail(format!(
+                    "`actions` has {} components per step; {env} takes {du}",
+                    a[2]
+                ));
+            }
         }
         if let Some(bad) = actions.iter().position(|x| !x.is_finite() || x.abs() > 1.0) {
+            let index = unravel(bad, a);
             return fail(format!(
-                "`actions` entry {bad} is {} (must be finite, in [-1, 1])",
+                "`actions`{index:?} is {} (actions must be finite and in [-1, 1]; scale them by the actuator limits)",
                 actions.iter().nth(bad).copied().unwrap_or(f32::NAN)
             ));
         }
-        if states.iter().any(|x| !x.is_finite()) {
-            return fail("`states` holds a non-finite value".into());
+        if let Some(states) = states {
+            let s = states.shape();
+            let dq = meta.env.map(|env| env.make().config_dim());
+            let expected_width = dq.map_or(s[2] >= 2 && s[2] % 2 == 0, |dq| s[2] == 2 * dq);
+            if s[..2] != [a[0], a[1] + 1] || !expected_width {
+                return fail(format!(
+                    "`states` has shape {s:?}, expected [{}, {}, {}] (q then qd per frame)",
+                    a[0],
+                    a[1] + 1,
+                    dq.map_or("2 dq".to_string(), |dq| (2 * dq).to_string())
+                ));
+            }
+            if let Some(bad) = states.iter().position(|x| !x.is_finite()) {
+                return fail(format!("`states`{:?} is not finite", unravel(bad, s)));
+            }
         }
         if !(meta.control_dt_s.is_finite() && meta.control_dt_s > 0.0) {
             return fail(format!(
-                "metadata control_dt_s = {} must be positive",
+                "`control_dt_s` = {} must be a positive number of seconds",
                 meta.control_dt_s
             ));
         }
         Ok(())
+    }
+}
+
+/// The index of the `flat`-th element of a C-order array of `shape`.
+fn unravel(mut flat: usize, shape: &[usize]) -> Vec<usize> {
+    let mut index = vec![0; shape.len()];
+    for (i, &n) in shape.iter().enumerate().rev() {
+        index[i] = flat % n.max(1);
+        flat /= n.max(1);
+    }
+    index
+}
+
+/// [`read_array`] for an array a dataset may leave out: `None` when it is absent.
+fn read_optional_array<R, A, D>(
+    npz: &mut NpzReader<R>,
+    path: &Path,
+    name: &str,
+) -> Result<Option<ArrayBase<ndarray::OwnedRepr<A>, D>>>
+where
+    R: Read + Seek,
+    A: ReadableElement,
+    D: Dimension,
+{
+    let names = npz
+        .names()
+        .map_err(|e| Error::dataset(path, format!("corrupt archive: {e}")))?;
+    if names
+        .iter()
+        .any(|n| n == name || *n == format!("{name}.npy"))
+    {
+        read_array(npz, path, name).map(Some)
+    } else {
+        Ok(None)
     }
 }
 

@@ -90,6 +90,42 @@ impl std::fmt::Display for EnvKind {
     }
 }
 
+/// Name of a data source that is none of procl's environments (frames from elsewhere).
+pub const CUSTOM_SOURCE: &str = "custom";
+
+/// The name of an optional environment: its own, or [`CUSTOM_SOURCE`] for data from elsewhere.
+pub fn source_name(env: Option<EnvKind>) -> &'static str {
+    env.map_or(CUSTOM_SOURCE, EnvKind::name)
+}
+
+/// Serde for `Option<EnvKind>` as one string: an environment's name, or `custom` for `None`
+/// (datasets and runs of systems procl does not simulate).
+pub mod env_or_custom {
+    use super::{CUSTOM_SOURCE, EnvKind, source_name};
+
+    pub fn serialize<S: serde::Serializer>(
+        env: &Option<EnvKind>,
+        serializer: S,
+    ) -> std::result::Result<S::Ok, S::Error> {
+        serializer.serialize_str(source_name(*env))
+    }
+
+    pub fn deserialize<'de, D: serde::Deserializer<'de>>(
+        deserializer: D,
+    ) -> std::result::Result<Option<EnvKind>, D::Error> {
+        let name: String = serde::Deserialize::deserialize(deserializer)?;
+        if name == CUSTOM_SOURCE {
+            return Ok(None);
+        }
+        name.parse::<EnvKind>().map(Some).map_err(|_| {
+            serde::de::Error::custom(format!(
+                "unknown environment `{name}` (expected {}, or {CUSTOM_SOURCE})",
+                EnvKind::NAMES.join(", ")
+            ))
+        })
+    }
+}
+
 /// The true physical state: configuration `q` and its velocity `qd` (SI units).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct State {

@@ -20,6 +20,6 @@ pub use reach::{
 };
 pub use run::{
     Controller, EvalOutputs, LATENT_MAP, RunPolicy, evaluate_oracle, evaluate_run,
-    evaluate_run_with, run_policy, write_diagnostics,
+    evaluate_run_with, run_policy, write_diagnostics, write_env_diagnostics,
 };
 pub use track::{Reference, TRACK_FIGURE, TrackReport, track_episode, track_run};

@@ -84,7 +84,7 @@ pub fn run_policy(
     model: TrainedModel,
     device: Device,
 ) -> Result<(String, f64, Box<dyn RunPolicy>)> {
-    let env_dt = config.env.make().control_dt_s();
+    let env_dt = config.control_dt_s();
     let label = config.method.label();
     match (model, &config.nvae) {
         (TrainedModel::Procl(model), _) => {
@@ -109,20 +109,36 @@ pub fn run_policy(
 }
 
 /// Computes the latent diagnostics of a trained run and writes `latent_map.png` and
-/// `diagnostics.json` into its folder.
-pub fn write_diagnostics(run: &RunPaths) -> Result<super::latent_map::LatentDiagnostics> {
+/// `diagnostics.json` into its folder; `None` for a run on custom data, whose true states
+/// procl cannot sweep.
+pub fn write_diagnostics(run: &RunPaths) -> Result<Option<super::latent_map::LatentDiagnostics>> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
+    let Some(env) = config.env else {
+        return Ok(None);
+    };
     let png = run.dir.join(LATENT_MAP);
     let encoder: &dyn LatentEncoder = match &model {
         TrainedModel::Procl(model) => &model.encoder,
         TrainedModel::Nvae(model) => &model.encoder,
     };
-    let diagnostics =
-        super::latent_map::latent_diagnostics(config.env, encoder, &device, Some(&png))?;
+    let diagnostics = super::latent_map::latent_diagnostics(env, encoder, &device, Some(&png))?;
     let path = run.dir.join("diagnostics.json");
     crate::fsutil::write_json(&path, &diagnostics)?;
-    Ok(diagnostics)
+    Ok(Some(diagnostics))
+}
+
+/// [`write_diagnostics`] for a run of one of procl's environments (an error for custom data).
+pub fn write_env_diagnostics(run: &RunPaths) -> Result<super::latent_map::LatentDiagnostics> {
+    write_diagnostics(run)?.ok_or_else(|| {
+        Error::config(
+            "env",
+            format!(
+                "{} holds a run on custom data, which has no latent diagnostics",
+                run.dir.display()
+            ),
+        )
+    })
 }
 
 /// Evaluates the oracle PD on the true state for `protocol`.
@@ -157,7 +173,7 @@ pub fn evaluate_run_with(
 ) -> Result<ReachReport> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
-    let env = config.env;
+    let env = config.simulated_env(&run.dir)?;
     let (label, records, times) = match (controller, model) {
         (Controller::Feedback, model) => {
             let (label, _, mut policy) = run_policy(&config, model, device)?;

@@ -27,16 +27,17 @@ pub struct Reference {
 }
 
 impl Reference {
-    /// The reference of `episode` in `demo`, without latents (for the oracle).
-    pub fn from_demo(demo: &Dataset, episode: usize) -> Self {
-        let dq = demo.config_dim();
+    /// The reference of `episode` in `demo`, whose true `states` are given, without latents
+    /// (for the oracle).
+    pub fn from_demo(demo: &Dataset, states: &ndarray::Array3<f32>, episode: usize) -> Self {
+        let dq = states.shape()[2] / 2;
         let frames = (0..=demo.steps())
             .map(|t| demo.frame(episode, t).to_vec())
             .collect();
         let states = (0..=demo.steps())
             .map(|t| {
                 let row: Vec<f64> = (0..2 * dq)
-                    .map(|i| demo.states[[episode, t, i]] as f64)
+                    .map(|i| states[[episode, t, i]] as f64)
                     .collect();
                 State {
                     q: row[..dq].to_vec(),
@@ -170,23 +171,29 @@ pub fn track_run(
 ) -> Result<TrackReport> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
-    let env = config.env;
+    let env = config.simulated_env(&run.dir)?;
     let demo = Dataset::load(demo_path)?;
-    if demo.meta.env != env {
+    if demo.meta.env != Some(env) {
         return Err(Error::dataset(
             demo_path,
             format!(
                 "holds {} demonstrations but the run {} controls {env}",
-                demo.meta.env,
+                demo.meta.source_name(),
                 run.dir.display()
             ),
         ));
     }
+    let Some(states) = &demo.states else {
+        return Err(Error::dataset(
+            demo_path,
+            "has no `states`; tracking compares the paths with the demonstrations' true states",
+        ));
+    };
     let (label, dt, mut latent_policy) = run_policy(&config, model, device.clone())?;
     let mut oracle = OraclePdPolicy::new(oracle_gains(env));
     let (mut latent_runs, mut oracle_runs, mut reference_paths) = (vec![], vec![], vec![]);
     for episode in 0..demo.episodes() {
-        let mut reference = Reference::from_demo(&demo, episode);
+        let mut reference = Reference::from_demo(&demo, states, episode);
         oracle_runs.push(track_episode(env, &mut oracle, &reference)?);
         reference.encode(latent_policy.encoder(), &device, dt);
         let mut record = track_episode(env, latent_policy.as_mut(), &reference)?;

@@ -22,7 +22,7 @@ use std::path::{Path, PathBuf};
 
 use crate::data::Dataset;
 use crate::error::{Error, Result};
-use crate::eval::{ReachConfig, evaluate_run, write_diagnostics};
+use crate::eval::{ReachConfig, evaluate_run, write_env_diagnostics};
 use crate::losses::StepValues;
 use crate::model::cpu_device;
 use crate::train::{RunPaths, TrainConfig, config_from_table, train};
@@ -142,7 +142,13 @@ pub fn run_grid(
         .filter_map(|l| serde_json::from_str(l).ok())
         .collect();
     // Validate every cell before spending hours on the first one.
-    let configs = grid.cell_configs(data.meta.env)?;
+    let env = data.meta.env.ok_or_else(|| {
+        Error::config(
+            "data",
+            "the ablation grids hold recipes of procl's environments; the dataset is custom",
+        )
+    })?;
+    let configs = grid.cell_configs(env)?;
     for (name, base_config) in &configs {
         for seed in seeds.clone() {
             if !train_missing || done.iter().any(|r| &r.cell == name && r.seed == seed) {
@@ -162,7 +168,7 @@ pub fn run_grid(
                 |step, values| progress(name, seed, step, config.steps, values),
             )?;
             let train_seconds = start.elapsed().as_secs_f64();
-            let diagnostics = write_diagnostics(&run)?;
+            let diagnostics = write_env_diagnostics(&run)?;
             let report = evaluate_run(&run, protocol, |_| {})?;
             let result = CellResult {
                 cell: name.clone(),

@@ -9,7 +9,7 @@ use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::eval::{
     LatentDiagnostics, MethodSummary, ReachConfig, ReachReport, evaluate_run, save_reach_plot,
-    write_diagnostics,
+    write_env_diagnostics,
 };
 use crate::runner::stages::{
     Outcome, ThrottledLine, collect_or_reuse, reach_protocol, set_budget, shrink_networks,
@@ -137,7 +137,7 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
             ),
             Outcome::Reused => format!("reusing trained {name} in {}", run.dir.display()),
         });
-        let diagnostics = write_diagnostics(&run)?;
+        let diagnostics = write_env_diagnostics(&run)?;
         let report: ReachReport = evaluate_run(&run, &protocol, |_| {})?;
         let mut methods = report.methods.into_iter();
         if let Some(latent) = methods.next() {

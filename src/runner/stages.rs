@@ -37,7 +37,13 @@ pub fn collect_or_reuse(
             data.steps(),
             data.meta.source.as_str(),
         );
-        let wanted = (config.env, config.seed, episodes, steps, RANDOM_CONTROL);
+        let wanted = (
+            Some(config.env),
+            config.seed,
+            episodes,
+            steps,
+            RANDOM_CONTROL,
+        );
         if found != wanted {
             return Err(Error::dataset(
                 path,
@@ -46,12 +52,12 @@ pub fn collect_or_reuse(
                     found.2,
                     found.4,
                     found.3,
-                    found.0,
+                    data.meta.source_name(),
                     found.1,
                     wanted.2,
                     wanted.4,
                     wanted.3,
-                    wanted.0,
+                    config.env,
                     wanted.1
                 ),
             ));

@@ -78,8 +78,14 @@ const NVAE_BATCH_SIZE: usize = 64;
 pub struct TrainConfig {
     pub preset: Preset,
     pub method: Method,
-    /// Environment the model is for (checked against the dataset).
-    pub env: EnvKind,
+    /// Environment the model is for (checked against the dataset); `None`, written `custom`,
+    /// for data from a system procl does not simulate.
+    #[serde(with = "crate::envs::env_or_custom")]
+    pub env: Option<EnvKind>,
+    /// Custom data only: the dataset's time between frames, which the controller's latent
+    /// velocity divides by (an environment's runs take their environment's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control_dt_s: Option<f64>,
     /// Seed of weights, batches and noise.
     pub seed: u64,
     /// Optimiser steps.
@@ -135,6 +141,56 @@ fn default_orientation_tolerance() -> f64 {
     0.05
 }
 
+/// Where a configuration's defaults come from: one of procl's environments, or data from
+/// elsewhere with `action_dim` components per action, trained with the recipe of the
+/// environment `recipe` (default: [`TrainConfig::custom_preset`]'s generic one).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ConfigBase {
+    Env(EnvKind),
+    Custom {
+        action_dim: usize,
+        control_dt_s: f64,
+        recipe: Option<EnvKind>,
+    },
+}
+
+impl ConfigBase {
+    /// The base for a dataset: its environment's, or custom with `recipe` (which only custom
+    /// data may choose).
+    pub fn for_dataset(data: &crate::data::Dataset, recipe: Option<EnvKind>) -> Result<Self> {
+        match (data.meta.env, recipe) {
+            (Some(env), None) => Ok(Self::Env(env)),
+            (Some(env), Some(_)) => Err(Error::config(
+                "preset-env",
+                format!("is for custom data; the dataset is from {env}, whose own preset applies"),
+            )),
+            (None, recipe) => Ok(Self::Custom {
+                action_dim: data.action_dim(),
+                control_dt_s: data.meta.control_dt_s,
+                recipe,
+            }),
+        }
+    }
+
+    fn preset(self, preset: Preset, method: Method) -> TrainConfig {
+        match self {
+            Self::Env(env) => TrainConfig::preset(preset, method, env),
+            Self::Custom {
+                action_dim,
+                control_dt_s,
+                recipe,
+            } => TrainConfig::custom_preset(preset, method, action_dim, control_dt_s, recipe),
+        }
+    }
+
+    fn env(self) -> Option<EnvKind> {
+        match self {
+            Self::Env(env) => Some(env),
+            Self::Custom { .. } => None,
+        }
+    }
+}
+
 /// The training steps every published result uses on `env` (and the default of `procl train`):
 /// 600 on point mass and Fetch, 1200 on the reacher.
 pub fn training_budget(env: EnvKind) -> u64 {
@@ -151,7 +207,8 @@ impl TrainConfig {
         let mut config = Self {
             preset,
             method,
-            env,
+            env: Some(env),
+            control_dt_s: None,
             seed: 0,
             steps: training_budget(env),
             batch_size: 128,
@@ -238,8 +295,74 @@ impl TrainConfig {
         config
     }
 
+    /// The configuration of `preset` for `method` on data from a system procl does not
+    /// simulate, with `action_dim` action components every `control_dt_s` seconds: the recipe of the environment `recipe`
+    /// with its latent resized to `action_dim`, or by default the generic recipe, which is the
+    /// point mass's (Cartesian keypoints, a linear map to the latent) with the latent oriented
+    /// by its response to the action, since nothing else about the system is known.
+    pub fn custom_preset(
+        preset: Preset,
+        method: Method,
+        action_dim: usize,
+        control_dt_s: f64,
+        recipe: Option<EnvKind>,
+    ) -> Self {
+        let mut config = Self::preset(preset, method, recipe.unwrap_or(EnvKind::PointMass));
+        config.env = None;
+        config.control_dt_s = Some(control_dt_s);
+        if recipe.is_none() && config.orientation_search_every > 0 {
+            config.orientation_criterion = OrientationCriterion::ActionResponse;
+        }
+        config.model.encoder.latent_dim = action_dim;
+        config.model.dynamics.latent_dim = action_dim;
+        if let Some(nvae) = &mut config.nvae {
+            *nvae = NvaeConfig::for_action_dim(action_dim);
+        }
+        config
+    }
+
+    /// The environment a trained run controls, or an error naming `run_dir` for custom runs,
+    /// which only a user's own loop can run.
+    pub fn simulated_env(&self, run_dir: &Path) -> Result<EnvKind> {
+        self.env.ok_or_else(|| {
+            Error::config(
+                "env",
+                format!(
+                    "{} was trained on custom data, and procl simulates only {}; run its controller in your own loop (Python: procl.Controller.load)",
+                    run_dir.display(),
+                    EnvKind::NAMES.join(", ")
+                ),
+            )
+        })
+    }
+
+    /// Seconds between control steps: the environment's, or the custom dataset's.
+    pub fn control_dt_s(&self) -> f64 {
+        match (self.env, self.control_dt_s) {
+            (Some(env), _) => env.make().control_dt_s(),
+            (None, Some(dt)) => dt,
+            // validate() refuses this combination.
+            (None, None) => f64::NAN,
+        }
+    }
+
     /// Rejects invalid values with the field's name.
     pub fn validate(&self) -> Result<()> {
+        match (self.env, self.control_dt_s) {
+            (Some(env), Some(_)) => {
+                return Err(Error::config(
+                    "control_dt_s",
+                    format!("is for custom data; {env} runs at its own control period"),
+                ));
+            }
+            (None, dt) if !dt.is_some_and(|dt| dt.is_finite() && dt > 0.0) => {
+                return Err(Error::config(
+                    "control_dt_s",
+                    "custom data needs a positive control period in seconds",
+                ));
+            }
+            _ => {}
+        }
         if self.steps == 0 {
             return Err(Error::config("steps", "must be at least 1"));
         }
@@ -289,13 +412,16 @@ impl TrainConfig {
         if self.method == Method::Pc3 && self.loss.lambda_r != 0.0 {
             return Err(Error::config("loss.lambda_r", "must be 0 for method pc3"));
         }
-        let du = self.env.make().action_dim();
+        let du = self.env.map(|env| env.make().action_dim());
+        let source = crate::envs::source_name(self.env);
         match (&self.nvae, self.method) {
             (Some(nvae), Method::Nvae) => {
-                if nvae.latent_dim != du {
+                if let Some(du) = du
+                    && nvae.latent_dim != du
+                {
                     return Err(Error::config(
                         "nvae.latent_dim",
-                        format!("must equal the action dimension {du} of {}", self.env),
+                        format!("must equal the action dimension {du} of {source}"),
                     ));
                 }
                 if self.orientation_search_every != 0 {
@@ -317,10 +443,12 @@ impl TrainConfig {
             }
             (None, _) => {}
         }
-        if self.model.encoder.latent_dim != du {
+        if let Some(du) = du
+            && self.model.encoder.latent_dim != du
+        {
             return Err(Error::config(
                 "model.encoder.latent_dim",
-                format!("must equal the action dimension {du} of {}", self.env),
+                format!("must equal the action dimension {du} of {source}"),
             ));
         }
         self.loss.validate()?;
@@ -330,12 +458,16 @@ impl TrainConfig {
 
 /// Reads a TOML config file over a preset: `preset`/`method` keys pick the base, every other
 /// key overrides it.
-pub fn config_from_toml(path: &Path, env: EnvKind, method: Option<Method>) -> Result<TrainConfig> {
+pub fn config_from_toml(
+    path: &Path,
+    base: impl Into<ConfigBase>,
+    method: Option<Method>,
+) -> Result<TrainConfig> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let table: toml::Table = text.parse().map_err(|e: toml::de::Error| {
         Error::config(path.display().to_string(), e.message().to_string())
     })?;
-    config_from_table(table, env, method).map_err(|e| match e {
+    config_from_table(table, base, method).map_err(|e| match e {
         Error::InvalidConfig { field, message } => {
             Error::config(format!("{}: {field}", path.display()), message)
         }
@@ -346,9 +478,10 @@ pub fn config_from_toml(path: &Path, env: EnvKind, method: Option<Method>) -> Re
 /// [`config_from_toml`] on an already parsed table.
 pub fn config_from_table(
     table: toml::Table,
-    env: EnvKind,
+    base: impl Into<ConfigBase>,
     method: Option<Method>,
 ) -> Result<TrainConfig> {
+    let base = base.into();
     let preset: Preset = match table.get("preset") {
         Some(v) => v.clone().try_into().map_err(|_| {
             Error::config(
@@ -372,23 +505,23 @@ pub fn config_from_table(
             ),
         ));
     }
-    let base = TrainConfig::preset(preset, method, env);
-    let mut merged =
-        toml::Table::try_from(&base).map_err(|e| Error::config("config", e.to_string()))?;
+    let mut merged = toml::Table::try_from(base.preset(preset, method))
+        .map_err(|e| Error::config("config", e.to_string()))?;
     merge(&mut merged, table);
     merged.insert(
         "method".into(),
         toml::Value::try_from(method).map_err(|e| Error::config("method", e.to_string()))?,
     );
+    let source = crate::envs::source_name(base.env());
     if let Some(named) = merged.get("env").and_then(|v| v.as_str())
-        && named != env.name()
+        && named != source
     {
         return Err(Error::config(
             "env",
-            format!("the configuration is for {named}, the dataset is from {env}"),
+            format!("the configuration is for {named}, the dataset is from {source}"),
         ));
     }
-    merged.insert("env".into(), toml::Value::String(env.name().into()));
+    merged.insert("env".into(), toml::Value::String(source.into()));
     // The path to the offending value names the field (`model.dynamics.full_covariance`), not
     // just the whole config.
     let config: TrainConfig = serde_path_to_error::deserialize(toml::Value::Table(merged))
@@ -399,6 +532,12 @@ pub fn config_from_table(
         })?;
     config.validate()?;
     Ok(config)
+}
+
+impl From<EnvKind> for ConfigBase {
+    fn from(env: EnvKind) -> Self {
+        Self::Env(env)
+    }
 }
 
 /// Deep-merges `over` into `base` (tables recursively, other values replaced).

@@ -12,7 +12,7 @@ pub use batches::loss_inputs;
 pub(crate) use batches::{batch_tensors, normal_tensor, sample_batch, step_rng};
 pub(crate) use config::merge;
 pub use config::{
-    Method, Preset, TrainConfig, config_from_table, config_from_toml, training_budget,
+    ConfigBase, Method, Preset, TrainConfig, config_from_table, config_from_toml, training_budget,
 };
 pub use nvae::elbo_inputs;
 pub use run_folder::{RunPaths, TrainedModel};
@@ -133,7 +133,31 @@ pub fn train(
             "env",
             format!(
                 "the dataset is from {}, the config is for {}",
-                data.meta.env, config.env
+                data.meta.source_name(),
+                crate::envs::source_name(config.env)
+            ),
+        ));
+    }
+    let (latent_field, latent_dim) = match &config.nvae {
+        Some(nvae) => ("nvae.latent_dim", nvae.latent_dim),
+        None => ("model.encoder.latent_dim", config.model.encoder.latent_dim),
+    };
+    if latent_dim != data.action_dim() {
+        return Err(Error::config(
+            latent_field,
+            format!(
+                "{latent_dim} must equal the dataset's action dimension {} (PD control drives one latent coordinate per action)",
+                data.action_dim()
+            ),
+        ));
+    }
+    if (config.control_dt_s() - data.meta.control_dt_s).abs() > 1e-12 * data.meta.control_dt_s {
+        return Err(Error::config(
+            "control_dt_s",
+            format!(
+                "{} s differs from the dataset's {} s",
+                config.control_dt_s(),
+                data.meta.control_dt_s
             ),
         ));
     }

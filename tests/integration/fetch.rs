@@ -193,7 +193,7 @@ fn dataset_and_command_line_take_fetch() {
     };
     assert_eq!(CollectConfig::new(EnvKind::Fetch, 1).transitions, 50_000);
     let data = collect(&config, |_| {}).unwrap();
-    assert_eq!((data.action_dim(), data.config_dim()), (3, 3));
+    assert_eq!((data.action_dim(), data.config_dim()), (3, Some(3)));
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("fetch.npz");
     data.save(&path, false).unwrap();
@@ -203,6 +203,8 @@ fn dataset_and_command_line_take_fetch() {
     for (i, [lo, hi]) in env.config_ranges().into_iter().enumerate() {
         assert!(
             data.states
+                .as_ref()
+                .unwrap()
                 .index_axis(ndarray::Axis(2), i)
                 .iter()
                 .all(|&x| x as f64 >= lo - 1e-6 && x as f64 <= hi + 1e-6)

@@ -3,6 +3,7 @@
 
 mod cli;
 mod control;
+mod custom;
 mod data;
 mod envs;
 mod experiment;

@@ -63,11 +63,11 @@ fn the_oracle_follows_every_shape_in_every_env() {
         for shape in [PathShape::Circle, PathShape::FigureEight, PathShape::Spline] {
             let demo = generate_reference(&small_reference(env, shape, 1), |_| {}).unwrap();
             // The reference moves: otherwise a tracker that stands still would score well.
-            let first = demo.config(0, 0);
-            let last = demo.config(0, demo.steps());
+            let first = demo.config(0, 0).unwrap();
+            let last = demo.config(0, demo.steps()).unwrap();
             let travelled: f64 = first.iter().zip(&last).map(|(a, b)| (a - b).abs()).sum();
             assert!(travelled > 1e-3, "{env} {shape:?} does not move");
-            let reference = Reference::from_demo(&demo, 0);
+            let reference = Reference::from_demo(&demo, demo.states.as_ref().unwrap(), 0);
             let mut oracle = OraclePdPolicy::new(oracle_gains(env));
             let record = track_episode(env, &mut oracle, &reference).unwrap();
             assert_eq!(record.distances.len(), demo.steps() + 1);
@@ -77,7 +77,7 @@ fn the_oracle_follows_every_shape_in_every_env() {
             let mean = |xs: Vec<f64>| xs.iter().sum::<f64>() / xs.len() as f64;
             let standing = mean(
                 (0..=demo.steps())
-                    .map(|t| sim.config_distance(&first, &demo.config(0, t)))
+                    .map(|t| sim.config_distance(&first, &demo.config(0, t).unwrap()))
                     .collect(),
             );
             let tracking = mean(record.distances.clone());
@@ -96,7 +96,7 @@ fn latent_tracking_encodes_each_frame_once_and_uses_the_references() {
     let config = TrainConfig::preset(Preset::Procl, Method::Procl, env);
     let model = config.model.init(0, &device).unwrap();
     let demo = generate_reference(&small_reference(env, PathShape::Circle, 2), |_| {}).unwrap();
-    let mut reference = Reference::from_demo(&demo, 1);
+    let mut reference = Reference::from_demo(&demo, demo.states.as_ref().unwrap(), 1);
     reference.encode(&model.encoder, &device, 0.02);
     assert_eq!(reference.h.len(), demo.steps() + 1);
     // v*_t is the backward difference of the reference's encodings.

@@ -1,0 +1,203 @@
+//! Data from elsewhere: frames, actions and a control period make a dataset that trains with
+//! the generic recipe (or an environment's), without true states.
+
+use std::path::Path;
+
+use ndarray::{Array0, Array3, Array5};
+use ndarray_npy::NpzWriter;
+use procl::data::{CollectConfig, Dataset, IMPORTED_SOURCE, collect};
+use procl::envs::EnvKind;
+
+use crate::cli::{fails_with, path_str, succeeds};
+
+/// Writes the three arrays a custom dataset needs, and nothing else.
+fn write_custom(path: &Path, obs: &Array5<u8>, actions: &Array3<f32>, control_dt_s: Option<f64>) {
+    let mut npz = NpzWriter::new(std::fs::File::create(path).unwrap());
+    npz.add_array("obs", obs).unwrap();
+    npz.add_array("actions", actions).unwrap();
+    if let Some(dt) = control_dt_s {
+        npz.add_array("control_dt_s", &Array0::from_elem((), dt))
+            .unwrap();
+    }
+    npz.finish().unwrap();
+}
+
+/// Point-mass frames and actions of `episodes` x `steps`, as another system would record them.
+fn recorded(episodes: usize, steps: usize) -> (Array5<u8>, Array3<f32>) {
+    let config = CollectConfig {
+        transitions: episodes * steps,
+        episode_len: steps,
+        ..CollectConfig::new(EnvKind::PointMass, 4)
+    };
+    let data = collect(&config, |_| {}).unwrap();
+    (data.obs, data.actions)
+}
+
+#[test]
+fn frames_actions_and_a_period_are_a_dataset() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("camera.npz");
+    let (obs, actions) = recorded(3, 12);
+    write_custom(&path, &obs, &actions, Some(0.05));
+    let data = Dataset::load(&path).unwrap();
+    assert_eq!(data.meta.env, None);
+    assert_eq!(data.meta.source_name(), "custom");
+    assert_eq!(data.meta.source, IMPORTED_SOURCE);
+    assert_eq!(data.meta.control_dt_s, 0.05);
+    assert_eq!((data.states.as_ref(), data.config_dim()), (None, None));
+    assert_eq!((data.obs, data.actions), (obs, actions));
+    // Saved by procl it keeps its metadata and still has no states.
+    let again = dir.path().join("again.npz");
+    let loaded = Dataset::load(&path).unwrap();
+    loaded.save(&again, false).unwrap();
+    assert_eq!(Dataset::load(&again).unwrap(), loaded);
+}
+
+#[test]
+fn broken_custom_arrays_get_one_line_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.npz");
+    let (obs, actions) = recorded(2, 6);
+    let message = |obs: &Array5<u8>, actions: &Array3<f32>, dt: Option<f64>| {
+        write_custom(&path, obs, actions, dt);
+        let msg = Dataset::load(&path).unwrap_err().to_string();
+        assert!(msg.contains(path_str(&path)), "{msg}");
+        assert!(!msg.contains('\n'), "{msg}");
+        msg
+    };
+    assert!(message(&obs, &actions, None).contains("missing array `control_dt_s`"));
+    assert!(message(&obs, &actions, Some(0.0)).contains("`control_dt_s` = 0"));
+    let small_frames = Array5::<u8>::zeros((2, 7, 48, 48, 3));
+    let msg = message(&small_frames, &actions, Some(0.1));
+    assert!(msg.contains("expected [2, 7, 64, 64, 3]"), "{msg}");
+    let mut strong = actions.clone();
+    strong[[1, 2, 0]] = 1.5;
+    let msg = message(&obs, &strong, Some(0.1));
+    assert!(msg.contains("`actions`[1, 2, 0] is 1.5"), "{msg}");
+    assert!(msg.contains("[-1, 1]"), "{msg}");
+    let mut nan = actions.clone();
+    nan[[0, 5, 1]] = f32::NAN;
+    assert!(message(&obs, &nan, Some(0.1)).contains("`actions`[0, 5, 1] is NaN"));
+    let short_obs = obs.slice(ndarray::s![.., ..2, .., .., ..]).to_owned();
+    let short_actions = actions.slice(ndarray::s![.., ..1, ..]).to_owned();
+    let msg = message(&short_obs, &short_actions, Some(0.1));
+    assert!(msg.contains("at least 1 episode of 2 steps"), "{msg}");
+}
+
+#[test]
+fn custom_data_trains_from_the_command_line_without_state_diagnostics() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("camera.npz");
+    let (obs, actions) = recorded(4, 10);
+    write_custom(&data, &obs, &actions, Some(0.05));
+    let info = succeeds(&["info", "--data", path_str(&data)]);
+    let info = String::from_utf8_lossy(&info.stdout);
+    assert!(info.contains("custom (imported)"), "{info}");
+    assert!(info.contains("no true states"), "{info}");
+
+    let run = dir.path().join("run");
+    let args = [
+        "train",
+        "--data",
+        path_str(&data),
+        "--out",
+        path_str(&run),
+        "--steps",
+        "2",
+    ];
+    let out = succeeds(&args);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("latent diagnostics skipped"), "{stdout}");
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["env"], "custom");
+    assert_eq!(config["control_dt_s"], 0.05);
+    // The generic recipe orients the latent by its response to the action.
+    assert_eq!(config["orientation_criterion"], "action-response");
+    assert!(!run.join("diagnostics.json").exists());
+    fails_with(&["eval", "--run", path_str(&run)], "trained on custom data");
+
+    // An environment's recipe on custom data, and the option refused on an environment's data.
+    let reacher_recipe = dir.path().join("reacher-recipe");
+    succeeds(&[
+        "train",
+        "--data",
+        path_str(&data),
+        "--out",
+        path_str(&reacher_recipe),
+        "--steps",
+        "1",
+        "--preset-env",
+        "reacher",
+    ]);
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(reacher_recipe.join("config.json")).unwrap())
+            .unwrap();
+    assert_eq!(config["model"]["encoder"]["head"]["polar"], true);
+    assert_eq!(config["env"], "custom");
+    let pm = dir.path().join("pm.npz");
+    succeeds(&[
+        "collect",
+        "--env",
+        "point-mass",
+        "--transitions",
+        "40",
+        "--episode-len",
+        "10",
+        "--out",
+        path_str(&pm),
+    ]);
+    fails_with(
+        &[
+            "train",
+            "--data",
+            path_str(&pm),
+            "--out",
+            path_str(&dir.path().join("x")),
+            "--preset-env",
+            "fetch",
+        ],
+        "preset-env",
+    );
+    // A config file written for an environment is refused on custom data by name.
+    let toml = dir.path().join("pm.toml");
+    std::fs::write(&toml, "env = \"point-mass\"\n").unwrap();
+    fails_with(
+        &[
+            "train",
+            "--data",
+            path_str(&data),
+            "--out",
+            path_str(&dir.path().join("y")),
+            "--config",
+            path_str(&toml),
+        ],
+        "the dataset is from custom",
+    );
+}
+
+#[test]
+fn a_custom_action_dimension_sizes_the_latent() {
+    // Three action components (as a 3-D end effector would take), frames from the point mass.
+    let (obs, actions) = recorded(2, 8);
+    let mut actions3 = Array3::<f32>::zeros((2, 8, 3));
+    actions3
+        .slice_mut(ndarray::s![.., .., ..2])
+        .assign(&actions);
+    let meta = procl::data::DatasetMeta::custom(0.1);
+    let data = Dataset::new(meta, obs, actions3, None).unwrap();
+    let base = procl::train::ConfigBase::for_dataset(&data, None).unwrap();
+    let config = procl::train::config_from_table(toml::Table::new(), base, None).unwrap();
+    assert_eq!(config.model.encoder.latent_dim, 3);
+    assert_eq!(config.model.dynamics.latent_dim, 3);
+    assert_eq!(config.control_dt_s(), 0.1);
+    let nvae =
+        procl::train::config_from_table(toml::Table::new(), base, Some(procl::train::Method::Nvae))
+            .unwrap();
+    assert_eq!(nvae.nvae.map(|n| n.latent_dim), Some(3));
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = config;
+    config.steps = 1;
+    config.batch_size = 4;
+    crate::support::train_into(&config, &data, dir.path(), false);
+}
