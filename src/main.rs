@@ -10,6 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use procl::data::{CollectConfig, collect};
 use procl::envs::EnvKind;
 use procl::eval::ReachConfig;
+use procl::runner::ablate::GridWork;
 use procl::runner::demo::DemoConfig;
 use procl::runner::experiment::{Event, ExperimentConfig};
 use procl::runner::stages::{Outcome, ThrottledLine};
@@ -204,9 +205,17 @@ enum Command {
         /// Run only this cell of the grid (to split a grid across processes or machines).
         #[arg(long)]
         cell: Option<String>,
-        /// Train nothing: summarise the results already in --out/ablation.jsonl.
+        /// Train nothing: summarise the results already in --out (ablation.jsonl and each
+        /// task's result.json).
         #[arg(long)]
         report_only: bool,
+        /// Run only task N of the grid (a job-array index: cells x seeds, cell by cell; see
+        /// --list-tasks); writes its result.json and no summary.
+        #[arg(long, conflicts_with = "report_only")]
+        task_index: Option<usize>,
+        /// Print the grid's tasks (index, cell, seed) and exit.
+        #[arg(long)]
+        list_tasks: bool,
         /// First training seed (seeds are seed_start .. seed_start + seeds).
         #[arg(long, default_value_t = 0)]
         seed_start: u64,
@@ -654,6 +663,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             grid,
             cell,
             report_only,
+            task_index,
+            list_tasks,
             seeds,
             seed_start,
             episodes,
@@ -673,6 +684,24 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             if seeds == 0 || episodes == 0 {
                 anyhow::bail!("--seeds and --episodes must be at least 1");
             }
+            if list_tasks {
+                grid.cell_configs(env)?;
+                let tasks = grid.tasks(seed_start..seed_start + seeds);
+                for (index, (name, seed)) in tasks.iter().enumerate() {
+                    println!("{index}\t{name}\tseed {seed}");
+                }
+                println!(
+                    "{} tasks (--task-index 0 to {})",
+                    tasks.len(),
+                    tasks.len() - 1
+                );
+                return Ok(());
+            }
+            let work = match (task_index, report_only) {
+                (Some(index), _) => GridWork::Task(index),
+                (None, true) => GridWork::ReportOnly,
+                (None, false) => GridWork::TrainMissing,
+            };
             let defaults = CollectConfig::new(env, 0);
             let transitions = transitions.unwrap_or(defaults.transitions);
             let collect_config = CollectConfig {
@@ -694,7 +723,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 seed_start..seed_start + seeds,
                 &protocol,
                 &out,
-                !report_only,
+                work,
                 |r| {
                     println!(
                         "{} seed {}: success {:.0}%, final {:.4}, R^2 {:.3}, det {}, {:.0} s",
@@ -717,11 +746,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     }
                 },
             )?;
-            println!(
-                "{} results; wrote {}",
-                results.len(),
-                out.join("ablation.md").display()
-            );
+            match work {
+                GridWork::Task(index) => println!(
+                    "task {index} done; {} of {} results in {}",
+                    results.len(),
+                    grid.tasks(seed_start..seed_start + seeds).len(),
+                    out.display()
+                ),
+                _ => println!(
+                    "{} results; wrote {}",
+                    results.len(),
+                    out.join("ablation.md").display()
+                ),
+            }
         }
         Command::Render {
             env,

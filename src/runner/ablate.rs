@@ -1,6 +1,7 @@
-//! Ablation grids : every cell of a TOML grid trained on several seeds and evaluated
-//! with the goal-reaching protocol; resumable (finished cells are read back, not redone), one
-//! line per finished cell in `ablation.jsonl`, and `ablation.md` + `ablation.json` at the end.
+//! Ablation grids: every cell of a TOML grid trained on several seeds and evaluated with the
+//! goal-reaching protocol; resumable (finished tasks are read back, not redone), one
+//! `result.json` per (cell, seed) and one line each in `ablation.jsonl`, and `ablation.md` +
+//! `ablation.json` at the end. A job array runs one (cell, seed) per index (`GridWork::Task`).
 //!
 //! Grid file:
 //!
@@ -85,6 +86,15 @@ impl Grid {
         })
     }
 
+    /// Every (cell, seed) of the grid over `seeds`, cell by cell: the tasks a job array's
+    /// indices name (`--task-index`, `--list-tasks`).
+    pub fn tasks(&self, seeds: std::ops::Range<u64>) -> Vec<(String, u64)> {
+        self.cells
+            .iter()
+            .flat_map(|(name, _)| seeds.clone().map(move |seed| (name.clone(), seed)))
+            .collect()
+    }
+
     /// The resolved training configuration of every cell for `env` (the cell's keys deep-merged
     /// over `[base]`, over the preset), or the first cell that does not resolve, by name.
     pub fn cell_configs(&self, env: crate::envs::EnvKind) -> Result<Vec<(String, TrainConfig)>> {
@@ -114,11 +124,29 @@ pub struct CellResult {
     pub train_seconds: f64,
 }
 
-/// Runs (or resumes) the grid on `data`, training seeds `seeds` per cell, into `out`. Results
-/// already in `out/ablation.jsonl` are read back instead of trained (so grids split across
-/// machines are merged by concatenating their `ablation.jsonl` lines); with `train_missing`
-/// false nothing is trained and the summary covers what is there. `progress(cell, seed, step,
-/// steps, values)` is called after every training step.
+/// What [`run_grid`] does with the grid's (cell, seed) tasks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GridWork {
+    /// Train and evaluate every task without a result, then write the summary. Holds the
+    /// grid folder's lock.
+    TrainMissing,
+    /// Train and evaluate task `i` of [`Grid::tasks`] only (a job-array element), unless it has
+    /// a result; other tasks run beside it, so only its run folder is locked and no summary
+    /// is written.
+    Task(usize),
+    /// Train nothing: summarise the results there are.
+    ReportOnly,
+}
+
+/// The name of a task's result file in its run folder.
+pub const TASK_RESULT: &str = "result.json";
+
+/// Runs (or resumes) the grid on `data`, training seeds `seeds` per cell, into `out`: cell
+/// `c`, seed `s` trains in `out/c/seed-s/` and leaves its [`CellResult`] there in
+/// `result.json` (and, without `Task`, as a line of `out/ablation.jsonl`). Tasks with a result
+/// in either place are read back instead of trained, so grids split across processes or
+/// machines merge by copying their folders (or concatenating `ablation.jsonl`).
+/// `progress(cell, seed, step, steps, values)` is called after every training step.
 #[allow(clippy::too_many_arguments)]
 pub fn run_grid(
     grid: &Grid,
@@ -126,71 +154,123 @@ pub fn run_grid(
     seeds: std::ops::Range<u64>,
     protocol: &ReachConfig,
     out: &Path,
-    train_missing: bool,
+    work: GridWork,
     mut log: impl FnMut(&CellResult),
     mut progress: impl FnMut(&str, u64, u64, u64, &StepValues),
 ) -> Result<Vec<CellResult>> {
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    // Training writes the grid's folder; a report from what is there only reads it.
-    let _writer = train_missing
+    // Training every task writes the grid's folder; one task writes its run folder only, and a
+    // report from what is there only reads.
+    let _writer = (work == GridWork::TrainMissing)
         .then(|| crate::fsutil::FolderLock::acquire(out))
         .transpose()?;
-    let jsonl = out.join("ablation.jsonl");
-    let mut done: Vec<CellResult> = std::fs::read_to_string(&jsonl)
-        .unwrap_or_default()
-        .lines()
-        .filter_map(|l| serde_json::from_str(l).ok())
-        .collect();
-    // Validate every cell before spending hours on the first one.
     let env = data.meta.env.ok_or_else(|| {
         Error::config(
             "data",
             "the ablation grids hold recipes of procl's environments; the dataset is custom",
         )
     })?;
+    // Validate every cell before spending hours on the first one.
     let configs = grid.cell_configs(env)?;
-    for (name, base_config) in &configs {
-        for seed in seeds.clone() {
-            if !train_missing || done.iter().any(|r| &r.cell == name && r.seed == seed) {
-                continue;
-            }
-            let mut config = base_config.clone();
-            config.seed = seed;
-            let run = RunPaths::new(out.join(name).join(format!("seed-{seed}")));
-            let resume = run.checkpoint().exists();
-            let start = std::time::Instant::now();
-            train(
-                &config,
-                data,
-                &run,
-                resume,
-                &cpu_device(),
-                |step, values| progress(name, seed, step, config.steps, values),
-            )?;
-            let train_seconds = start.elapsed().as_secs_f64();
-            let diagnostics = write_env_diagnostics(&run)?;
-            let report = evaluate_run(&run, protocol, |_| {})?;
-            let result = CellResult {
-                cell: name.clone(),
-                seed,
-                success_rate: report.methods[0].success_rate,
-                final_mean: report.methods[0].final_mean,
-                linear_r2: diagnostics.linear_r2,
-                det: diagnostics.config_to_latent_det,
-                oracle_success_rate: report.methods.get(1).map_or(f64::NAN, |m| m.success_rate),
-                train_seconds,
-            };
+    let tasks = grid.tasks(seeds);
+    if let GridWork::Task(index) = work
+        && index >= tasks.len()
+    {
+        return Err(Error::config(
+            "task-index",
+            format!(
+                "{index} is out of range: the grid has {} tasks, 0 to {} (--list-tasks)",
+                tasks.len(),
+                tasks.len().saturating_sub(1)
+            ),
+        ));
+    }
+    let jsonl = out.join("ablation.jsonl");
+    let mut done = read_results(out, &jsonl, &tasks)?;
+    for (index, (name, seed)) in tasks.iter().enumerate() {
+        let wanted = match work {
+            GridWork::TrainMissing => true,
+            GridWork::Task(i) => i == index,
+            GridWork::ReportOnly => false,
+        };
+        if !wanted || done.iter().any(|r| &r.cell == name && r.seed == *seed) {
+            continue;
+        }
+        let Some((_, base_config)) = configs.iter().find(|(n, _)| n == name) else {
+            continue;
+        };
+        let mut config = base_config.clone();
+        config.seed = *seed;
+        let run = RunPaths::new(task_dir(out, name, *seed));
+        let resume = run.checkpoint().exists();
+        let start = std::time::Instant::now();
+        train(
+            &config,
+            data,
+            &run,
+            resume,
+            &cpu_device(),
+            |step, values| progress(name, *seed, step, config.steps, values),
+        )?;
+        let train_seconds = start.elapsed().as_secs_f64();
+        let diagnostics = write_env_diagnostics(&run)?;
+        let report = evaluate_run(&run, protocol, |_| {})?;
+        let result = CellResult {
+            cell: name.clone(),
+            seed: *seed,
+            success_rate: report.methods[0].success_rate,
+            final_mean: report.methods[0].final_mean,
+            linear_r2: diagnostics.linear_r2,
+            det: diagnostics.config_to_latent_det,
+            oracle_success_rate: report.methods.get(1).map_or(f64::NAN, |m| m.success_rate),
+            train_seconds,
+        };
+        crate::fsutil::write_json(&run.dir.join(TASK_RESULT), &result)?;
+        if work == GridWork::TrainMissing {
             let line = serde_json::to_string(&result)
                 .map_err(|e| Error::config("ablation", e.to_string()))?;
             crate::fsutil::append_line(&jsonl, "", &line)?;
-            log(&result);
-            done.push(result);
         }
+        log(&result);
+        done.push(result);
     }
     let order: Vec<&String> = configs.iter().map(|(n, _)| n).collect();
     done.retain(|r| order.contains(&&r.cell));
     done.sort_by_key(|r| (order.iter().position(|n| *n == &r.cell), r.seed));
-    write_summary(out, &done, &order, protocol)?;
+    if !matches!(work, GridWork::Task(_)) {
+        write_summary(out, &done, &order, protocol)?;
+    }
+    Ok(done)
+}
+
+/// The run folder of cell `name`, seed `seed`.
+fn task_dir(out: &Path, name: &str, seed: u64) -> PathBuf {
+    out.join(name).join(format!("seed-{seed}"))
+}
+
+/// The results already in `out`: the lines of `jsonl`, then each task's `result.json` that
+/// no line covers. A line cut short by a crash is skipped (its task's `result.json`, written
+/// atomically, still counts); a malformed `result.json` is refused by name.
+pub(crate) fn read_results(
+    out: &Path,
+    jsonl: &Path,
+    tasks: &[(String, u64)],
+) -> Result<Vec<CellResult>> {
+    let mut done: Vec<CellResult> = std::fs::read_to_string(jsonl)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    for (name, seed) in tasks {
+        let path = task_dir(out, name, *seed).join(TASK_RESULT);
+        if done.iter().any(|r| &r.cell == name && r.seed == *seed) || !path.exists() {
+            continue;
+        }
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        let result: CellResult = serde_json::from_str(&text)
+            .map_err(|e| Error::config(path.display().to_string(), e.to_string()))?;
+        done.push(result);
+    }
     Ok(done)
 }
 

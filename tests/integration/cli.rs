@@ -301,3 +301,83 @@ fn a_second_writer_into_a_locked_folder_is_refused() {
     succeeds(&train);
     assert!(run.join("model.safetensors").exists());
 }
+
+#[test]
+fn ablation_tasks_run_one_per_job_array_index_and_merge() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = dir.path().join("grid.toml");
+    std::fs::write(
+        &grid,
+        "[base]\nsteps = 2\nbatch_size = 8\n[[cell]]\nname = \"default\"\n[[cell]]\nname = \"q_v=0\"\nloss = { q_v = 0.0 }\n",
+    )
+    .unwrap();
+    let out = dir.path().join("grid");
+    let args = |extra: &[&str]| -> Vec<String> {
+        let mut args: Vec<String> = [
+            "ablate",
+            "--env",
+            "point-mass",
+            "--grid",
+            path_str(&grid),
+            "--seeds",
+            "2",
+            "--episodes",
+            "1",
+            "--horizon",
+            "5",
+            "--transitions",
+            "40",
+            "--episode-len",
+            "10",
+            "--out",
+            path_str(&out),
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args
+    };
+    let run = |extra: &[&str]| {
+        let args = args(extra);
+        succeeds(&args.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let listed = String::from_utf8_lossy(&run(&["--list-tasks"]).stdout).into_owned();
+    assert!(listed.contains("0\tdefault\tseed 0"), "{listed}");
+    assert!(listed.contains("3\tq_v=0\tseed 1"), "{listed}");
+    assert!(listed.contains("4 tasks"), "{listed}");
+    assert!(!out.exists(), "listing wrote {}", out.display());
+
+    run(&["--task-index", "3"]);
+    run(&["--task-index", "0"]);
+    assert!(out.join("q_v=0/seed-1/result.json").exists());
+    assert!(out.join("default/seed-0/result.json").exists());
+    assert!(!out.join("default/seed-1").exists());
+    assert!(!out.join("ablation.md").exists());
+    let bad = args(&["--task-index", "4"]);
+    fails_with(
+        &bad.iter().map(String::as_str).collect::<Vec<_>>(),
+        "the grid has 4 tasks",
+    );
+
+    run(&["--report-only"]);
+    let merged: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    let seen: Vec<(String, u64)> = merged
+        .iter()
+        .map(|r| {
+            (
+                r["cell"].as_str().unwrap().to_string(),
+                r["seed"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(seen, [("default".into(), 0), ("q_v=0".into(), 1)]);
+    // The whole grid trains only the two tasks still missing.
+    run(&[]);
+    let merged: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    assert_eq!(merged.len(), 4);
+    let jsonl = std::fs::read_to_string(out.join("ablation.jsonl")).unwrap();
+    assert_eq!(jsonl.lines().count(), 2);
+}

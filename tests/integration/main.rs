@@ -10,6 +10,7 @@ mod experiment;
 mod fetch;
 mod nvae;
 mod presets;
+mod shipped;
 mod support;
 mod track;
 mod train;

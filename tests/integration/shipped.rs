@@ -1,0 +1,48 @@
+//! The trained runs shipped in `models/`: each loads, and the point mass's reaches its goals.
+
+use std::path::Path;
+
+use procl::envs::EnvKind;
+use procl::eval::{ReachConfig, evaluate_run};
+use procl::model::cpu_device;
+use procl::train::RunPaths;
+
+fn shipped(env: EnvKind) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("models")
+        .join(env.name())
+}
+
+#[test]
+fn every_shipped_run_loads_as_its_environments_procl_run() {
+    for env in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
+        let (config, _) = RunPaths::new(shipped(env))
+            .load_trained(&cpu_device())
+            .unwrap_or_else(|e| panic!("{env}: {e}"));
+        assert_eq!(config.env, Some(env));
+        assert_eq!(config.method, procl::train::Method::Procl);
+    }
+}
+
+#[test]
+fn the_shipped_point_mass_run_reaches_its_goals() {
+    // Evaluation writes its outputs into the run folder: work on a copy.
+    let dir = tempfile::tempdir().unwrap();
+    for file in ["config.json", "model.safetensors"] {
+        std::fs::copy(
+            shipped(EnvKind::PointMass).join(file),
+            dir.path().join(file),
+        )
+        .unwrap();
+    }
+    let protocol = ReachConfig {
+        episodes: 10,
+        ..ReachConfig::for_env(EnvKind::PointMass, 1000)
+    };
+    let report = evaluate_run(&RunPaths::new(dir.path()), &protocol, |_| {}).unwrap();
+    assert_eq!(
+        report.methods[0].success_rate, 1.0,
+        "{:?}",
+        report.methods[0]
+    );
+}
