@@ -55,12 +55,22 @@ pub enum Error {
 /// `Result` with procl's [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
+/// `message` on one line: a dependency's multi-line report (a parser's caret diagram) has its
+/// line breaks and indentation folded into single spaces, so every error prints as one line.
+fn one_line(message: String) -> String {
+    if message.contains(['\n', '\r']) {
+        message.split_whitespace().collect::<Vec<_>>().join(" ")
+    } else {
+        message
+    }
+}
+
 impl Error {
     /// Shorthand for [`Error::InvalidConfig`].
     pub fn config(field: impl Into<String>, message: impl Into<String>) -> Self {
         Error::InvalidConfig {
-            field: field.into(),
-            message: message.into(),
+            field: one_line(field.into()),
+            message: one_line(message.into()),
         }
     }
 
@@ -68,7 +78,15 @@ impl Error {
     pub fn dataset(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
         Error::Dataset {
             path: path.into(),
-            message: message.into(),
+            message: one_line(message.into()),
+        }
+    }
+
+    /// Shorthand for [`Error::Checkpoint`].
+    pub fn checkpoint(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        Error::Checkpoint {
+            path: path.into(),
+            message: one_line(message.into()),
         }
     }
 
@@ -78,5 +96,26 @@ impl Error {
             path: path.into(),
             cause: source,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_dependencys_multi_line_report_becomes_one_line() {
+        let report =
+            "syntax error:  --> 1:35\n  |\n1 | {'descr': FalsbT}\n  |     ^---\n  = expected value";
+        let message = Error::dataset("d.npz", report).to_string();
+        assert_eq!(
+            message,
+            "dataset d.npz: syntax error: --> 1:35 | 1 | {'descr': FalsbT} | ^--- = expected value"
+        );
+        // Messages without line breaks keep their spacing.
+        assert_eq!(
+            Error::config("f", "a  b").to_string(),
+            "invalid value for `f`: a  b"
+        );
     }
 }

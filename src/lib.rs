@@ -10,7 +10,8 @@
 //! - [`baselines`]: the NewtonianVAE and model-predictive control on a learned latent;
 //! - [`train`]: configurations and presets, batches, the loop, checkpoints, run folders;
 //! - [`eval`]: goal reaching, tracking, latent diagnostics and plots of a trained run;
-//! - [`runner`]: resumable stages, the demo, the paper's experiment and ablation grids.
+//! - [`runner`]: resumable stages, the demo, the paper's experiment and ablation grids;
+//! - [`fuzz`]: every file parser above as a fuzz target.
 
 mod error;
 mod fsutil;
@@ -22,6 +23,7 @@ pub mod control;
 pub mod data;
 pub mod envs;
 pub mod eval;
+pub mod fuzz;
 pub mod losses;
 pub mod model;
 pub mod runner;

@@ -187,7 +187,21 @@ pub enum Event<'a> {
 /// Seconds each stage took when it last ran, in the order stages first ran, kept in
 /// `stages.json` so that a resumed experiment still reports how long its reused stages took.
 #[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
-struct StageTimes(Vec<(String, f64)>);
+pub(crate) struct StageTimes(Vec<(String, f64)>);
+
+/// The stage log at `path` (empty when there is none yet).
+pub(crate) fn read_stage_times(path: &Path) -> Result<StageTimes> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => serde_json::from_str(&text).map_err(|e| {
+            Error::config(
+                path.display().to_string(),
+                format!("not procl's stage log ({e}); move it away"),
+            )
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(StageTimes::default()),
+        Err(e) => Err(Error::io(path, e)),
+    }
+}
 
 impl StageTimes {
     fn get(&self, name: &str) -> Option<f64> {
@@ -245,16 +259,7 @@ pub fn run_experiment(
         .then(|| crate::fsutil::FolderLock::acquire(&config.out))
         .transpose()?;
     let stages_path = config.out.join("stages.json");
-    let times = match std::fs::read_to_string(&stages_path) {
-        Ok(text) => serde_json::from_str(&text).map_err(|e| {
-            Error::config(
-                stages_path.display().to_string(),
-                format!("not procl's stage log ({e}); move it away"),
-            )
-        })?,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => StageTimes::default(),
-        Err(e) => return Err(Error::io(&stages_path, e)),
-    };
+    let times = read_stage_times(&stages_path)?;
     let mut stages = Stages {
         path: stages_path,
         times,

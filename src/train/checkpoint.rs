@@ -156,10 +156,8 @@ impl ModuleMapper for Restore<'_> {
                     }
                     None => format!("missing tensor `{key}`"),
                 };
-                self.error.get_or_insert(Error::Checkpoint {
-                    path: self.file.to_path_buf(),
-                    message: what,
-                });
+                self.error
+                    .get_or_insert(Error::checkpoint(self.file.to_path_buf(), what));
                 param
             }
         }
@@ -229,27 +227,19 @@ pub fn save_checkpoint<M: Module>(
         meta: meta.clone(),
         adam_step: adam.map_or(0, |a| a.step),
     };
-    let json = serde_json::to_string(&stored_meta).map_err(|e| Error::Checkpoint {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
+    let json =
+        serde_json::to_string(&stored_meta).map_err(|e| Error::checkpoint(path, e.to_string()))?;
     let metadata = std::collections::HashMap::from([("procl".to_string(), json)]);
     let views: Vec<(String, TensorView<'_>)> = bytes
         .iter()
         .map(|(name, dims, data)| {
             TensorView::new(Dtype::F32, dims.clone(), data)
                 .map(|view| (name.clone(), view))
-                .map_err(|e| Error::Checkpoint {
-                    path: path.to_path_buf(),
-                    message: e.to_string(),
-                })
+                .map_err(|e| Error::checkpoint(path, e.to_string()))
         })
         .collect::<Result<_>>()?;
-    let serialized =
-        safetensors::serialize(views, Some(metadata)).map_err(|e| Error::Checkpoint {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
+    let serialized = safetensors::serialize(views, Some(metadata))
+        .map_err(|e| Error::checkpoint(path, e.to_string()))?;
     write_atomically(path, true, |w| {
         std::io::Write::write_all(w, &serialized).map_err(|e| Error::io(path, e))
     })
@@ -257,10 +247,7 @@ pub fn save_checkpoint<M: Module>(
 
 /// The procl metadata in a checkpoint file's header.
 fn stored_meta(path: &Path, bytes: &[u8]) -> Result<StoredMeta> {
-    let corrupt = |message: String| Error::Checkpoint {
-        path: path.to_path_buf(),
-        message,
-    };
+    let corrupt = |message: String| Error::checkpoint(path, message);
     let (_, header) = safetensors::SafeTensors::read_metadata(bytes)
         .map_err(|e| corrupt(format!("not a readable safetensors file ({e})")))?;
     header
@@ -283,10 +270,7 @@ pub fn load_checkpoint<M: Module>(
     model: M,
     device: &Device,
 ) -> Result<(M, Adam, CheckpointMeta)> {
-    let corrupt = |message: String| Error::Checkpoint {
-        path: path.to_path_buf(),
-        message,
-    };
+    let corrupt = |message: String| Error::checkpoint(path, message);
     let bytes = std::fs::read(path).map_err(|e| match e.kind() {
         std::io::ErrorKind::NotFound => {
             corrupt("not found (train a model with `procl train` first)".into())

@@ -8,6 +8,7 @@ mod data;
 mod envs;
 mod experiment;
 mod fetch;
+mod fuzz;
 mod nvae;
 mod presets;
 mod shipped;

@@ -1,0 +1,19 @@
+//! Fuzzes procl's run_config_json parser (`procl::fuzz::Target::RunConfigJson`).
+#![no_main]
+
+use std::sync::OnceLock;
+
+use libfuzzer_sys::fuzz_target;
+use procl::fuzz::{Harness, Target};
+
+fn harness() -> &'static Harness {
+    static HARNESS: OnceLock<Harness> = OnceLock::new();
+    HARNESS.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("procl-fuzz-run_config_json-{}", std::process::id()));
+        Harness::new(Target::RunConfigJson, &dir).expect("scratch folder")
+    })
+}
+
+fuzz_target!(|bytes: &[u8]| {
+    let _ = harness().run(bytes);
+});
