@@ -7,6 +7,6 @@ seconds=${1:-60}
 cargo run --quiet --release --bin seeds
 for target in npz config_toml grid_toml checkpoint run_config_json stages_json ablation_results; do
     mkdir -p "../tests/fuzz_regressions/$target"
-    cargo +nightly fuzz run --release "$target" "corpus/$target" "../tests/fuzz_regressions/$target" \
+    cargo +nightly fuzz run --sanitizer none "$target" "corpus/$target" "../tests/fuzz_regressions/$target" \
         -- -max_total_time="$seconds" -rss_limit_mb=4096 2>&1 | grep -E "^#[0-9]+ *DONE|Done [0-9]+ runs|ERROR|SUMMARY" || true
 done

@@ -46,7 +46,25 @@ pub fn write_atomically<T>(
             .into_inner()
             .map_err(|e| Error::io(path, e.into_error()))?;
         file.sync_all().map_err(|e| Error::io(path, e))?;
-        std::fs::rename(&temp, path).map_err(|e| Error::io(path, e))?;
+        if force {
+            std::fs::rename(&temp, path).map_err(|e| Error::io(path, e))?;
+        } else {
+            // A hard link is created only where nothing exists, atomically: of two writers
+            // racing for a new file, the second is refused instead of replacing the first.
+            match std::fs::hard_link(&temp, path) {
+                Ok(()) => {
+                    let _ = std::fs::remove_file(&temp);
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    return Err(Error::WouldClobber(path.to_path_buf()));
+                }
+                // File systems without hard links: check, then rename.
+                Err(_) => {
+                    check_writable(path, false)?;
+                    std::fs::rename(&temp, path).map_err(|e| Error::io(path, e))?;
+                }
+            }
+        }
         Ok(value)
     })();
     if result.is_err() {
@@ -134,6 +152,27 @@ impl FolderLock {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_file_created_while_writing_is_not_replaced_without_force() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("data.npz");
+        // Another writer finishes the same file while this one is still writing.
+        let err = write_atomically(&path, false, |w| {
+            std::fs::write(&path, b"theirs").expect("other writer");
+            w.write_all(b"mine").map_err(|e| Error::io(&path, e))
+        })
+        .unwrap_err();
+        assert!(matches!(err, Error::WouldClobber(_)), "{err}");
+        assert_eq!(std::fs::read(&path).expect("read"), b"theirs");
+        assert_eq!(std::fs::read_dir(dir.path()).expect("dir").count(), 1);
+        // With force, the last writer wins.
+        write_atomically(&path, true, |w| {
+            w.write_all(b"mine").map_err(|e| Error::io(&path, e))
+        })
+        .expect("forced");
+        assert_eq!(std::fs::read(&path).expect("read"), b"mine");
+    }
 
     #[test]
     fn a_locked_folder_refuses_a_second_writer_until_the_first_lets_go() {

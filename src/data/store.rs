@@ -130,30 +130,56 @@ impl Dataset {
         &self.obs.as_slice().unwrap_or(&[])[start..start + crate::envs::FRAME_BYTES]
     }
 
+    /// SHA-256 of what training reads: the source, the control period, and the frames and
+    /// actions (not the file's bytes, which depend on compression), as lowercase hex.
+    pub fn content_sha256(&self) -> String {
+        use sha2::Digest;
+        let mut hash = sha2::Sha256::new();
+        hash.update(self.meta.source_name().as_bytes());
+        hash.update(self.meta.control_dt_s.to_le_bytes());
+        for dim in self.obs.shape().iter().chain(self.actions.shape()) {
+            hash.update((*dim as u64).to_le_bytes());
+        }
+        match self.obs.as_slice() {
+            Some(bytes) => hash.update(bytes),
+            None => self.obs.iter().for_each(|b| hash.update([*b])),
+        }
+        for a in self.actions.iter() {
+            hash.update(a.to_le_bytes());
+        }
+        hash.finalize().iter().map(|b| format!("{b:02x}")).collect()
+    }
+
     /// Writes the dataset to `path` atomically; refuses to replace a file unless `force`.
     pub fn save(&self, path: &Path, force: bool) -> Result<()> {
         let meta_json =
             serde_json::to_vec(&self.meta).map_err(|e| Error::dataset(path, e.to_string()))?;
         write_atomically(path, force, |file| {
-            let npz_err =
-                |e: ndarray_npy::WriteNpzError| Error::dataset(path, format!("writing npz: {e}"));
-            let mut npz = NpzWriter::new_compressed(file);
-            npz.add_array("obs", &self.obs).map_err(npz_err)?;
-            npz.add_array("actions", &self.actions).map_err(npz_err)?;
-            if let Some(states) = &self.states {
-                npz.add_array("states", states).map_err(npz_err)?;
-            }
-            npz.add_array("meta", &Array1::from(meta_json))
-                .map_err(npz_err)?;
-            npz.add_array(
-                "control_dt_s",
-                &Array0::from_elem((), self.meta.control_dt_s),
-            )
-            .map_err(npz_err)?;
-            npz.add_array("seed", &Array0::from_elem((), self.meta.seed))
-                .map_err(npz_err)?;
-            npz.finish().map_err(npz_err)?;
-            Ok(())
+            let mut first_error = None;
+            let mut npz = NpzWriter::new_compressed(QuietAfterError {
+                inner: file,
+                first_error: &mut first_error,
+            });
+            let written = (|| {
+                npz.add_array("obs", &self.obs)?;
+                npz.add_array("actions", &self.actions)?;
+                if let Some(states) = &self.states {
+                    npz.add_array("states", states)?;
+                }
+                npz.add_array("meta", &Array1::from(meta_json))?;
+                npz.add_array(
+                    "control_dt_s",
+                    &Array0::from_elem((), self.meta.control_dt_s),
+                )?;
+                npz.add_array("seed", &Array0::from_elem((), self.meta.seed))?;
+                npz.finish().map(drop)
+            })();
+            // The writer's own error on a failed write is a bare "i/o error"; the operating
+            // system's (a full disk, a lost mount) is the one worth reading.
+            written.map_err(|e| match first_error.take() {
+                Some(io) => Error::io(path, io),
+                None => Error::dataset(path, format!("writing npz: {e}")),
+            })
         })
     }
 
@@ -308,6 +334,53 @@ where
         read_array(npz, path, name).map(Some)
     } else {
         Ok(None)
+    }
+}
+
+/// A writer that keeps its first error and then accepts and discards everything: the zip
+/// writer under `NpzWriter` finishes the archive when dropped after a failed write, and prints
+/// its own debug line to stderr when that fails too. The kept error reaches the caller, whose
+/// temporary file is then removed, so nothing is lost by discarding the rest.
+struct QuietAfterError<'a, W> {
+    inner: W,
+    first_error: &'a mut Option<std::io::Error>,
+}
+
+impl<W> QuietAfterError<'_, W> {
+    /// `result`, with an error kept and replaced by one of the same kind for the zip writer.
+    fn keep<T>(&mut self, result: std::io::Result<T>) -> std::io::Result<T> {
+        result.map_err(|e| {
+            let kind = e.kind();
+            *self.first_error = Some(e);
+            std::io::Error::from(kind)
+        })
+    }
+}
+
+impl<W: std::io::Write> std::io::Write for QuietAfterError<'_, W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        if self.first_error.is_some() {
+            return Ok(buf.len());
+        }
+        let result = self.inner.write(buf);
+        self.keep(result)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        if self.first_error.is_some() {
+            return Ok(());
+        }
+        let result = self.inner.flush();
+        self.keep(result)
+    }
+}
+
+impl<W: Seek> Seek for QuietAfterError<'_, W> {
+    fn seek(&mut self, pos: std::io::SeekFrom) -> std::io::Result<u64> {
+        if self.first_error.is_some() {
+            return Ok(0);
+        }
+        let result = self.inner.seek(pos);
+        self.keep(result)
     }
 }
 

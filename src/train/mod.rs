@@ -15,7 +15,7 @@ pub use config::{
     ConfigBase, Method, Preset, TrainConfig, config_from_table, config_from_toml, training_budget,
 };
 pub use nvae::elbo_inputs;
-pub use run_folder::{RunPaths, TrainedModel};
+pub use run_folder::{DataRecord, RunPaths, TrainedModel};
 
 use std::io::Write;
 use std::path::Path;
@@ -171,12 +171,22 @@ pub fn train(
             ),
         ));
     }
+    let record = DataRecord::of(data);
     let device = &device.clone().autodiff();
     match &config.nvae {
         Some(nvae) => {
             let model = nvae.init(config.seed, device)?;
             let objective = NvaeObjective::new(config, nvae, data, device);
-            run_training(objective, model, config, run, resume, device, &mut progress)
+            run_training(
+                objective,
+                model,
+                config,
+                run,
+                &record,
+                resume,
+                device,
+                &mut progress,
+            )
         }
         None => {
             let model = config.model.init(config.seed, device)?;
@@ -188,7 +198,16 @@ pub fn train(
                 search: (config.orientation_search_every > 0)
                     .then(|| LatentOrienter::new(config.orientation_criterion, data.action_dim())),
             };
-            run_training(objective, model, config, run, resume, device, &mut progress)
+            run_training(
+                objective,
+                model,
+                config,
+                run,
+                &record,
+                resume,
+                device,
+                &mut progress,
+            )
         }
     }
 }
@@ -196,11 +215,13 @@ pub fn train(
 /// The loop every method shares: run folder and `--resume`, Adam, one metrics.csv row per
 /// step, a checkpoint every `checkpoint_every` steps and at the end, and a clean stop on a
 /// non-finite loss that keeps the last good checkpoint.
+#[allow(clippy::too_many_arguments)]
 fn run_training<O: Objective>(
     mut objective: O,
     mut model: O::Model,
     config: &TrainConfig,
     run: &RunPaths,
+    record: &DataRecord,
     resume: bool,
     device: &Device,
     progress: &mut dyn FnMut(u64, &StepValues),
@@ -219,6 +240,7 @@ fn run_training<O: Objective>(
                 ),
             ));
         }
+        run.check_same_data(record)?;
         let (m, a, meta) = load_checkpoint(&run.checkpoint(), model, device)?;
         (model, adam, start) = (m, a, meta.step);
         truncate_metrics(&run.metrics(), start, &metrics_header(O::METRICS))?;
@@ -234,6 +256,7 @@ fn run_training<O: Objective>(
         }
         model = objective.prepare(model);
         crate::fsutil::write_json(&run.config(), config)?;
+        crate::fsutil::write_json(&run.data_record(), record)?;
         let header = metrics_header(O::METRICS) + "\n";
         std::fs::write(run.metrics(), header).map_err(|e| Error::io(run.metrics(), e))?;
     }

@@ -28,6 +28,33 @@ impl RunPaths {
     pub fn metrics(&self) -> PathBuf {
         self.dir.join("metrics.csv")
     }
+    /// `data.json`: which dataset the run trains on ([`DataRecord`]).
+    pub fn data_record(&self) -> PathBuf {
+        self.dir.join("data.json")
+    }
+
+    /// Refuses to resume on another dataset than the one the run started on (runs without a
+    /// `data.json` are not checked).
+    pub fn check_same_data(&self, record: &DataRecord) -> Result<()> {
+        let path = self.data_record();
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            return Ok(());
+        };
+        let saved: DataRecord = serde_json::from_str(&text)
+            .map_err(|e| Error::config("resume", format!("{}: {e}", path.display())))?;
+        if saved.sha256 != record.sha256 {
+            return Err(Error::config(
+                "resume",
+                format!(
+                    "the dataset is not the one {} started on ({}; given {}); resume with the original, or start a new run",
+                    self.dir.display(),
+                    saved.describe(),
+                    record.describe()
+                ),
+            ));
+        }
+        Ok(())
+    }
 
     /// Reads the resolved config of a finished or running run.
     pub fn load_config(&self) -> Result<TrainConfig> {
@@ -151,6 +178,32 @@ fn drop_retired_options(config: &mut serde_json::Value) -> std::result::Result<(
         map.remove(key);
     }
     Ok(())
+}
+
+/// The dataset a run trains on: its size and [`crate::data::Dataset::content_sha256`].
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DataRecord {
+    pub sha256: String,
+    pub episodes: usize,
+    pub steps: usize,
+}
+
+impl DataRecord {
+    pub fn of(data: &crate::data::Dataset) -> Self {
+        Self {
+            sha256: data.content_sha256(),
+            episodes: data.episodes(),
+            steps: data.steps(),
+        }
+    }
+
+    fn describe(&self) -> String {
+        let short = &self.sha256[..12.min(self.sha256.len())];
+        format!(
+            "{} episodes x {} steps, sha256 {short}",
+            self.episodes, self.steps
+        )
+    }
 }
 
 /// A trained model as [`RunPaths::load_trained`] rebuilds it.

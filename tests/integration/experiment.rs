@@ -124,6 +124,20 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     let (_, finished) = run(&config, true);
     assert!(finished.is_empty());
 
+    // On a full disk the report is not replaced: the last good one stays, with one line of error.
+    let report = out.join("report.html");
+    let good = std::fs::read(&report).unwrap();
+    let full = crate::faults::full_disk_for(&report);
+    let err = run_experiment(&config, true, &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("No space left") && !err.contains('\n'),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&report).unwrap(), good);
+    assert!(!full.exists(), "the temporary file is left behind");
+
     // The README section is rewritten in place, the rest kept, the figures copied beside it.
     let readme = dir.path().join("README.md");
     std::fs::write(

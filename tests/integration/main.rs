@@ -7,6 +7,7 @@ mod custom;
 mod data;
 mod envs;
 mod experiment;
+mod faults;
 mod fetch;
 mod fuzz;
 mod nvae;
