@@ -116,10 +116,11 @@ enum Command {
         horizon: Option<usize>,
         /// Controller on the latent (default: the method's own): pd (procl and pc3 runs, the
         /// run's gains) | pid (nvae runs) | mpc (procl and pc3 runs: CEM through the learned
-        /// dynamics, horizon 10; writes eval-mpc.json, reach-mpc.png, ...).
+        /// dynamics, horizon 10; writes eval-mpc.json, reach-mpc.png, ...) | ilqr (procl and
+        /// pc3 runs: iLQR through the learned dynamics, PC3's controller; eval-ilqr.json, ...).
         #[arg(long)]
         controller: Option<String>,
-        /// MPC planning horizon in steps.
+        /// MPC (CEM and iLQR) planning horizon in steps.
         #[arg(long, default_value_t = 10)]
         mpc_horizon: usize,
     },
@@ -475,10 +476,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     horizon: mpc_horizon,
                     ..Default::default()
                 }),
+                "ilqr" => procl::eval::Controller::Ilqr(procl::baselines::ilqr::IlqrConfig {
+                    horizon: mpc_horizon,
+                    ..Default::default()
+                }),
                 other => anyhow::bail!(
                     "invalid value for `--controller`: `{other}` ({} runs: {own}{}, or leave it out)",
                     config.method.label(),
-                    if own == "pd" { " or mpc" } else { "" }
+                    if own == "pd" { ", mpc or ilqr" } else { "" }
                 ),
             };
             let mut protocol = ReachConfig::for_env(config.simulated_env(&run)?, seed);

@@ -40,6 +40,7 @@ impl EvalOutputs {
         let suffix = match controller {
             Controller::Feedback => "",
             Controller::Mpc(_) => "-mpc",
+            Controller::Ilqr(_) => "-ilqr",
         };
         Self {
             json: run.dir.join(format!("eval{suffix}.json")),
@@ -58,6 +59,8 @@ pub enum Controller {
     Feedback,
     /// CEM-MPC through the learned dynamics `g` (the run-time cost reference; ProCL and PC3).
     Mpc(MpcConfig),
+    /// iLQR-MPC through `g`, PC3's own controller (ProCL and PC3).
+    Ilqr(crate::baselines::ilqr::IlqrConfig),
 }
 
 /// A latent policy of any feedback law and encoder, as the evaluations drive it.
@@ -188,7 +191,21 @@ pub fn evaluate_run_with(
             let label = format!("{} + MPC", config.method.label());
             (label, records, policy.control_times_s)
         }
-        (Controller::Mpc(_), TrainedModel::Nvae(_)) => {
+        (Controller::Ilqr(ilqr), TrainedModel::Procl(model)) => {
+            let dt = env.make().control_dt_s();
+            let law = crate::baselines::ilqr::IlqrMpc::new(
+                model.dynamics,
+                device.clone(),
+                ilqr.clone(),
+                dt,
+            )?;
+            let mut policy =
+                crate::baselines::ilqr::IlqrPolicy::new(model.encoder, device, law, dt);
+            let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
+            let label = format!("{} + iLQR", config.method.label());
+            (label, records, policy.control_times_s)
+        }
+        (Controller::Mpc(_) | Controller::Ilqr(_), TrainedModel::Nvae(_)) => {
             return Err(Error::config(
                 "controller",
                 format!(

@@ -209,6 +209,18 @@ fn eval_writes_the_documented_outputs() {
         assert!(run.dir.join(file).exists(), "{file} missing");
     }
     assert_eq!(std::fs::read(run.dir.join("eval.json")).unwrap(), pd_json);
+
+    // So does iLQR, PC3's own controller.
+    let ilqr = Controller::Ilqr(procl::baselines::ilqr::IlqrConfig {
+        candidates: 2,
+        iterations: 2,
+        ..Default::default()
+    });
+    let report = evaluate_run_with(&run, &protocol, &ilqr, |_| {}).unwrap();
+    assert_eq!(report.methods[0].method, "ProCL + iLQR");
+    assert!(report.methods[0].control_time_us_p50.unwrap() > 0.0);
+    assert!(run.dir.join("eval-ilqr.json").exists());
+    assert_eq!(std::fs::read(run.dir.join("eval.json")).unwrap(), pd_json);
 }
 
 #[test]

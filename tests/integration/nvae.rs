@@ -231,10 +231,12 @@ fn eval_diagnose_and_track_an_nvae_run_with_pid() {
         "--controller",
         "pid",
     ]);
-    fails_with(
-        &["eval", "--run", path_str(&run), "--controller", "mpc"],
-        "NewtonianVAE",
-    );
+    for mpc in ["mpc", "ilqr"] {
+        fails_with(
+            &["eval", "--run", path_str(&run), "--controller", mpc],
+            "NewtonianVAE",
+        );
+    }
     fails_with(
         &["eval", "--run", path_str(&run), "--controller", "pd"],
         "pid",
