@@ -6,17 +6,20 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::baselines::ilqr::IlqrConfig;
+use crate::baselines::mpc::MpcConfig;
 use crate::control::{PathShape, ReferenceConfig, generate_reference};
 use crate::data::{CollectConfig, Dataset};
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::eval::{
-    EvalOutputs, LATENT_MAP, LatentDiagnostics, MethodSummary, ReachConfig, TRACK_FIGURE,
-    TrackReport, save_reach_plot, track_run, write_diagnostics,
+    Controller, EvalOutputs, LATENT_MAP, LatentDiagnostics, MethodSummary, ReachConfig,
+    TRACK_FIGURE, TrackReport, save_reach_plot, track_run, write_diagnostics,
 };
 use crate::runner::stages::{
-    Outcome, collect_or_reuse, evaluate_or_reuse, reach_protocol, read_current, read_eval,
-    set_budget, shrink_networks, train_or_reuse, training_seconds,
+    Outcome, collect_or_reuse, evaluate_or_reuse, evaluate_or_reuse_with, reach_protocol,
+    read_current, read_eval, read_eval_with, set_budget, shrink_networks, train_or_reuse,
+    training_seconds,
 };
 use crate::train::{Method, Preset, RunPaths, TrainConfig};
 
@@ -50,6 +53,9 @@ pub struct ExperimentConfig {
     pub track_shape: PathShape,
     pub track_demos: usize,
     pub track_steps: usize,
+    /// Model-predictive controllers also evaluated on the ProCL and PC3 latents (through
+    /// their learned dynamics `g`): what PD gives up in success and saves in time.
+    pub planners: Vec<Controller>,
     /// Shrinks every network (the `--quick` smoke run).
     pub tiny_model: bool,
 }
@@ -84,6 +90,10 @@ impl ExperimentConfig {
             track_shape: PathShape::FigureEight,
             track_demos: 4,
             track_steps: 500,
+            planners: vec![
+                Controller::Mpc(MpcConfig::default()),
+                Controller::Ilqr(IlqrConfig::default()),
+            ],
             tiny_model: false,
         }
     }
@@ -134,6 +144,14 @@ impl ExperimentConfig {
         } else {
             let dir = self.env_dir(EnvKind::PointMass).join("ablation");
             (RunPaths::new(dir.join(format!("eps={eps}"))), false)
+        }
+    }
+
+    /// The planners evaluated on `method`'s runs (those with a learned dynamics `g`).
+    fn planners_of(&self, method: Method) -> &[Controller] {
+        match method {
+            Method::Procl | Method::Pc3 => &self.planners,
+            Method::Nvae => &[],
         }
     }
 
@@ -283,7 +301,12 @@ fn count_stages(config: &ExperimentConfig) -> usize {
         .filter(|eps| !config.ablation_run(**eps).1)
         .count();
     let tracking = if config.has_fetch() { 2 } else { 0 };
-    config.envs.len() * (1 + 2 * config.methods.len()) + 2 * ablation_runs + tracking
+    let planned: usize = config
+        .methods
+        .iter()
+        .map(|m| config.planners_of(*m).len())
+        .sum();
+    config.envs.len() * (1 + 2 * config.methods.len() + planned) + 2 * ablation_runs + tracking
 }
 
 fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
@@ -306,14 +329,22 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
         for method in &config.methods {
             let train_config = config.train_config(budget, *method);
             let run = config.run(env, *method);
-            train_and_evaluate(
-                stages,
-                &format!("{env}/{}", method.dir_name()),
-                &train_config,
-                &data,
-                &run,
-                &config.protocol(env),
-            )?;
+            let name = format!("{env}/{}", method.dir_name());
+            let protocol = config.protocol(env);
+            train_and_evaluate(stages, &name, &train_config, &data, &run, &protocol)?;
+            for planner in config.planners_of(*method) {
+                let file = EvalOutputs::for_controller(&run, planner).json;
+                let stem = file.file_stem().map(|s| s.to_string_lossy().into_owned());
+                stages.run(
+                    &format!("{name}/{}", stem.unwrap_or_default()),
+                    |progress| {
+                        let episodes = protocol.episodes as u64;
+                        evaluate_or_reuse_with(&run, &protocol, planner, |done| {
+                            progress(done as u64, episodes)
+                        })
+                    },
+                )?;
+            }
         }
     }
     let point_mass = &config.envs[0];
@@ -429,6 +460,9 @@ pub struct Row {
     pub final_mean: f64,
     pub final_std: f64,
     pub control_time_us_p50: Option<f64>,
+    /// The control step's p50 over the feedback law's (PD or PID) on the same run, measured
+    /// in the same experiment.
+    pub control_time_vs_feedback: Option<f64>,
     pub control_time_us_p99: Option<f64>,
     pub linear_r2: Option<f64>,
     pub knn_r2: Option<f64>,
@@ -503,6 +537,16 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
             };
             oracle = oracle.or(methods.next());
             let diagnostics = read_diagnostics(&run);
+            let pd_time = latent.control_time_us_p50;
+            let planned: Vec<MethodSummary> = config
+                .planners_of(*method)
+                .iter()
+                .filter_map(|planner| {
+                    let report =
+                        read_eval_with(&run, planner).filter(|r| r.protocol == protocol)?;
+                    report.methods.into_iter().next()
+                })
+                .collect();
             rows.push(Row {
                 method: latent.method.clone(),
                 run: relative(&run),
@@ -510,6 +554,7 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                 final_mean: latent.final_mean,
                 final_std: latent.final_std,
                 control_time_us_p50: latent.control_time_us_p50,
+                control_time_vs_feedback: Some(1.0),
                 control_time_us_p99: latent.control_time_us_p99,
                 linear_r2: diagnostics.as_ref().map(|d| d.linear_r2),
                 knn_r2: diagnostics.as_ref().map(|d| d.knn_r2),
@@ -518,6 +563,27 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                 train_seconds: training_seconds(&run),
                 curve: latent,
             });
+            for plan in planned {
+                rows.push(Row {
+                    method: plan.method.clone(),
+                    run: relative(&run),
+                    success_rate: plan.success_rate,
+                    final_mean: plan.final_mean,
+                    final_std: plan.final_std,
+                    control_time_us_p50: plan.control_time_us_p50,
+                    control_time_vs_feedback: plan
+                        .control_time_us_p50
+                        .zip(pd_time)
+                        .map(|(t, pd)| t / pd),
+                    control_time_us_p99: plan.control_time_us_p99,
+                    linear_r2: None,
+                    knn_r2: None,
+                    pushes_away_share: None,
+                    locally_unstable_share: None,
+                    train_seconds: None,
+                    curve: plan,
+                });
+            }
         }
         if let Some(oracle) = oracle {
             rows.push(Row {
@@ -527,6 +593,7 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                 final_mean: oracle.final_mean,
                 final_std: oracle.final_std,
                 control_time_us_p50: None,
+                control_time_vs_feedback: None,
                 control_time_us_p99: None,
                 linear_r2: None,
                 knn_r2: None,
@@ -627,12 +694,12 @@ fn optional(value: Option<f64>, digits: usize) -> String {
 /// control time.
 pub fn markdown_table(summary: &Summary) -> String {
     let mut md = String::from(
-        "| environment | method | success | final distance | control step p50 (us) | R^2 of q from h | training (s) |\n|---|---|---|---|---|---|---|\n",
+        "| environment | method | success | final distance | control step p50 (us) | step time / PD or PID | R^2 of q from h | training (s) |\n|---|---|---|---|---|---|---|---|\n",
     );
     for results in &summary.envs {
         for row in &results.rows {
             md.push_str(&format!(
-                "| {} | {} | {:.0}% | {:.4} +- {:.4} {} | {} | {} | {} |\n",
+                "| {} | {} | {:.0}% | {:.4} +- {:.4} {} | {} | {} | {} | {} |\n",
                 results.env,
                 row.method,
                 100.0 * row.success_rate,
@@ -640,6 +707,8 @@ pub fn markdown_table(summary: &Summary) -> String {
                 row.final_std,
                 results.protocol.distance_unit,
                 optional(row.control_time_us_p50, 0),
+                row.control_time_vs_feedback
+                    .map_or("-".into(), |x| format!("{x:.1}x")),
                 optional(row.linear_r2, 3),
                 optional(row.train_seconds, 0),
             ));
@@ -654,7 +723,7 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
     for results in &summary.envs {
         for row in &results.rows {
             table.push_str(&format!(
-                "<tr><td>{}</td><td>{}</td><td>{:.0}%</td><td>{:.4} &plusmn; {:.4} {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
+                "<tr><td>{}</td><td>{}</td><td>{:.0}%</td><td>{:.4} &plusmn; {:.4} {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
                 results.env,
                 row.method,
                 100.0 * row.success_rate,
@@ -663,6 +732,8 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
                 results.protocol.distance_unit,
                 optional(row.control_time_us_p50, 0),
                 optional(row.control_time_us_p99, 0),
+                row.control_time_vs_feedback
+                    .map_or("-".into(), |x| format!("{x:.1}x")),
                 optional(row.linear_r2, 3),
                 optional(row.knn_r2, 3),
                 optional(row.pushes_away_share.map(|x| 100.0 * x), 1),
@@ -672,8 +743,8 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
         }
     }
     body.push_str(&format!(
-        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset for the same number of steps.</p>\
-<table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>locally unstable cells (%)</th><th>training (s)</th></tr>\n{table}</table>\n",
+        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset for the same number of steps; CEM and iLQR plan through the ProCL and PC3 runs' learned dynamics, on the same latents as their PD.</p>\
+<table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>step time / PD or PID</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>locally unstable cells (%)</th><th>training (s)</th></tr>\n{table}</table>\n",
         config.eval_episodes
     ));
     for results in &summary.envs {

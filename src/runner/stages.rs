@@ -6,7 +6,7 @@ use std::path::Path;
 use crate::data::{CollectConfig, Dataset, collect};
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
-use crate::eval::{EvalOutputs, ReachConfig, ReachReport, evaluate_run};
+use crate::eval::{Controller, EvalOutputs, ReachConfig, ReachReport, evaluate_run_with};
 use crate::losses::StepValues;
 use crate::model::{EncoderHead, cpu_device};
 use crate::train::{RunPaths, TrainConfig, train};
@@ -178,10 +178,24 @@ pub fn evaluate_or_reuse(
     protocol: &ReachConfig,
     progress: impl FnMut(usize),
 ) -> Result<(ReachReport, Outcome)> {
-    if let Some(report) = read_eval(run).filter(|r| &r.protocol == protocol) {
+    evaluate_or_reuse_with(run, protocol, &Controller::Feedback, progress)
+}
+
+/// As [`evaluate_or_reuse`] for `controller` on the run's latent (its own file,
+/// `eval-mpc.json`, `eval-ilqr.json`, ...).
+pub fn evaluate_or_reuse_with(
+    run: &RunPaths,
+    protocol: &ReachConfig,
+    controller: &Controller,
+    progress: impl FnMut(usize),
+) -> Result<(ReachReport, Outcome)> {
+    if let Some(report) = read_eval_with(run, controller).filter(|r| &r.protocol == protocol) {
         return Ok((report, Outcome::Reused));
     }
-    Ok((evaluate_run(run, protocol, progress)?, Outcome::Ran))
+    Ok((
+        evaluate_run_with(run, protocol, controller, progress)?,
+        Outcome::Ran,
+    ))
 }
 
 /// The run's JSON output `path` (in its folder), if readable and written after the run's
@@ -195,7 +209,12 @@ pub fn read_current<T: serde::de::DeserializeOwned>(run: &RunPaths, path: &Path)
 
 /// The run's `eval.json`, if there is a readable one written after its checkpoint.
 pub fn read_eval(run: &RunPaths) -> Option<ReachReport> {
-    read_current(run, &EvalOutputs::in_run(run).json)
+    read_eval_with(run, &Controller::Feedback)
+}
+
+/// The evaluation of `controller` on the run's latent, if current (as [`read_eval`]).
+pub fn read_eval_with(run: &RunPaths, controller: &Controller) -> Option<ReachReport> {
+    read_current(run, &EvalOutputs::for_controller(run, controller).json)
 }
 
 /// The goal-reaching protocol of `env` with the evaluation seed 1000 (disjoint from the data

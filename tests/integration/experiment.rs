@@ -30,8 +30,9 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     let config = ExperimentConfig::quick(&out);
     let (summary, finished) = run(&config, false);
 
-    // 3 envs x (collect + 3 methods x (train + eval)), 2 ablation runs x 2, demonstrate, track.
-    assert_eq!(finished.len(), 27, "{finished:?}");
+    // 3 envs x (collect + 3 methods x (train + eval) + CEM and iLQR on ProCL and PC3), 2
+    // ablation runs x 2, demonstrate, track.
+    assert_eq!(finished.len(), 39, "{finished:?}");
     assert!(finished.iter().all(|(_, o)| *o == Outcome::Ran));
     let envs: Vec<EnvKind> = summary.envs.iter().map(|e| e.env).collect();
     assert_eq!(envs, [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch]);
@@ -41,14 +42,35 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
             methods,
             [
                 "ProCL + PD",
+                "ProCL + MPC",
+                "ProCL + iLQR",
                 "PC3 + PD",
+                "PC3 + MPC",
+                "PC3 + iLQR",
                 "NewtonianVAE + PID",
                 "oracle PD (true state)"
             ],
             "{}",
             results.env
         );
-        for row in &results.rows[..3] {
+        // The planners act on the same runs; their step time is measured against PD's.
+        for row in results
+            .rows
+            .iter()
+            .filter(|r| r.method.ends_with("MPC") || r.method.ends_with("iLQR"))
+        {
+            assert!(
+                row.control_time_vs_feedback.is_some_and(|x| x > 0.0),
+                "{}",
+                row.method
+            );
+            assert!(out.join(row.run.as_ref().unwrap()).exists());
+        }
+        let feedback = results
+            .rows
+            .iter()
+            .filter(|r| r.method.ends_with("+ PD") || r.method.ends_with("+ PID"));
+        for row in feedback {
             assert!(row.final_mean.is_finite() && row.control_time_us_p50.is_some());
             assert!(row.train_seconds.is_some() && row.linear_r2.is_some());
             // Every env's latent has as many dimensions as its configuration.
@@ -79,7 +101,7 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     assert_eq!((tracking.env, tracking.demonstrations), (EnvKind::Fetch, 1));
     assert!(out.join("point-mass/ablation.png").exists());
     assert!(out.join("fetch/procl/track.png").exists());
-    assert_eq!(summary.stage_seconds.len(), 27);
+    assert_eq!(summary.stage_seconds.len(), 39);
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     for needle in [
         "fetch/reach_all.png",
@@ -99,7 +121,7 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     let weights = out.join("reacher/procl/model.safetensors");
     let before = std::fs::read(&weights).unwrap();
     let (again, finished) = run(&config, false);
-    assert_eq!(finished.len(), 27);
+    assert_eq!(finished.len(), 39);
     assert!(
         finished.iter().all(|(_, o)| *o == Outcome::Reused),
         "{finished:?}"
@@ -118,7 +140,14 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
         .filter(|(_, o)| *o == Outcome::Ran)
         .map(|(n, _)| n.as_str())
         .collect();
-    assert_eq!(ran, ["point-mass/pc3/eval"]);
+    assert_eq!(
+        ran,
+        [
+            "point-mass/pc3/eval",
+            "point-mass/pc3/eval-mpc",
+            "point-mass/pc3/eval-ilqr"
+        ]
+    );
 
     // --report-only runs nothing.
     let (_, finished) = run(&config, true);
