@@ -47,6 +47,10 @@ pub enum Error {
     #[error("{0}")]
     Diverged(String),
 
+    /// Training was stopped on request (a Python KeyboardInterrupt).
+    #[error("{0}")]
+    Interrupted(String),
+
     /// Encoding an image (PNG/GIF) failed.
     #[error("could not encode image {path}: {message}")]
     Image { path: PathBuf, message: String },

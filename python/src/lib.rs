@@ -2,13 +2,14 @@
 //! latent controller, and collect / train / info on files. `python/procl` wraps these in
 //! gymnasium's `Env` and `VectorEnv`.
 
+use std::ops::ControlFlow;
 use std::path::PathBuf;
 
 use numpy::ndarray::{Array1, Array2, Array4};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyArray4, PyReadonlyArray1};
 use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::create_exception;
-use pyo3::exceptions::PyException;
+use pyo3::exceptions::{PyException, PyKeyboardInterrupt};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use rand::SeedableRng;
@@ -615,35 +616,58 @@ fn train<'py>(
     preset_env: Option<String>,
     resume: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let summary = py
-        .detach(|| -> procl::Result<procl::train::TrainSummary> {
-            let dataset = procl::data::Dataset::load(&data)?;
-            let method = method.map(|m| m.parse()).transpose()?;
-            let recipe = preset_env.map(|e| e.parse()).transpose()?;
-            let mut table = match &config_path {
-                Some(path) => {
-                    let text =
-                        std::fs::read_to_string(path).map_err(|e| procl::Error::io(path, e))?;
-                    text.parse::<toml::Table>().map_err(|e| {
-                        procl::Error::config(path.display().to_string(), e.message().to_string())
-                    })?
-                }
-                None => toml::Table::new(),
-            };
-            if let Some(text) = overrides_json {
-                let overrides: toml::Table = serde_json::from_str(&text)
-                    .map_err(|e| procl::Error::config("config", e.to_string()))?;
-                table.extend(overrides);
+    // Training runs without the GIL; between steps it takes the GIL back long enough to see a
+    // Ctrl-C, and stops as a killed run would (the last checkpoint kept for `resume`).
+    let mut interrupt: Option<PyErr> = None;
+    let outcome = py.detach(|| -> procl::Result<procl::train::TrainSummary> {
+        let dataset = procl::data::Dataset::load(&data)?;
+        let method = method.map(|m| m.parse()).transpose()?;
+        let recipe = preset_env.map(|e| e.parse()).transpose()?;
+        let mut table = match &config_path {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|e| procl::Error::io(path, e))?;
+                text.parse::<toml::Table>().map_err(|e| {
+                    procl::Error::config(path.display().to_string(), e.message().to_string())
+                })?
             }
-            let base = procl::train::ConfigBase::for_dataset(&dataset, recipe)?;
-            let config = procl::train::config_from_table(table, base, method)?;
-            let run = RunPaths::new(&out);
-            let summary =
-                procl::train::train(&config, &dataset, &run, resume, &cpu_device(), |_, _| {})?;
-            procl::eval::write_diagnostics(&run)?;
-            Ok(summary)
-        })
-        .map_err(py_err)?;
+            None => toml::Table::new(),
+        };
+        if let Some(text) = overrides_json {
+            let overrides: toml::Table = serde_json::from_str(&text)
+                .map_err(|e| procl::Error::config("config", e.to_string()))?;
+            table.extend(overrides);
+        }
+        let base = procl::train::ConfigBase::for_dataset(&dataset, recipe)?;
+        let config = procl::train::config_from_table(table, base, method)?;
+        let run = RunPaths::new(&out);
+        let summary = procl::train::train_interruptible(
+            &config,
+            &dataset,
+            &run,
+            resume,
+            &cpu_device(),
+            |_, _| match Python::attach(|py| py.check_signals()) {
+                Ok(()) => ControlFlow::Continue(()),
+                Err(e) => {
+                    interrupt = Some(e);
+                    ControlFlow::Break(())
+                }
+            },
+        )?;
+        procl::eval::write_diagnostics(&run)?;
+        Ok(summary)
+    });
+    let summary = match (outcome, interrupt) {
+        (Err(procl::Error::Interrupted(message)), Some(signal)) => {
+            // The signal's own exception (KeyboardInterrupt), saying what was kept.
+            return Err(if signal.is_instance_of::<PyKeyboardInterrupt>(py) {
+                PyKeyboardInterrupt::new_err(message)
+            } else {
+                signal
+            });
+        }
+        (outcome, _) => outcome.map_err(py_err)?,
+    };
     let result = PyDict::new(py);
     result.set_item("steps", summary.steps_done)?;
     result.set_item("seconds", summary.seconds)?;

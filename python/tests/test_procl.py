@@ -180,3 +180,25 @@ def test_readme_python_quickstart_runs_as_written(tmp_path, monkeypatch):
     assert blocks, "README has no Python quickstart"
     monkeypatch.chdir(tmp_path)
     exec(compile(blocks[0], "README.md", "exec"), {})
+
+
+def test_ctrl_c_stops_training_and_resume_continues(tmp_path):
+    import os
+    import signal
+    import threading
+
+    data = tmp_path / "camera.npz"
+    write_custom_dataset(data, episodes=4, steps=10)
+    config = {"batch_size": 8, "checkpoint_every": 5, "orientation_search_every": 5}
+    timer = threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt) as caught:
+            procl.train(data, tmp_path / "run", steps=100_000, config=config)
+    finally:
+        timer.cancel()
+    assert "training stopped after step" in str(caught.value)
+    # It stopped within a step or two of the signal, not at the end of the budget; resuming
+    # from the kept checkpoint is tested in Rust (tests/integration/faults.rs).
+    steps = len((tmp_path / "run" / "metrics.csv").read_text().splitlines()) - 1
+    assert 0 < steps < 1_000

@@ -18,6 +18,7 @@ pub use nvae::elbo_inputs;
 pub use run_folder::{DataRecord, RunPaths, TrainedModel};
 
 use std::io::Write;
+use std::ops::ControlFlow;
 use std::path::Path;
 use std::time::Instant;
 
@@ -127,6 +128,23 @@ pub fn train(
     device: &Device,
     mut progress: impl FnMut(u64, &StepValues),
 ) -> Result<TrainSummary> {
+    train_interruptible(config, data, run, resume, device, |step, values| {
+        progress(step, values);
+        ControlFlow::Continue(())
+    })
+}
+
+/// As [`train`], stopping when `progress` breaks: after that step (and its checkpoint, if one
+/// falls on it) with [`Error::Interrupted`], which names the checkpoint `--resume` continues
+/// from. A resumed run gives the same weights as one never stopped.
+pub fn train_interruptible(
+    config: &TrainConfig,
+    data: &Dataset,
+    run: &RunPaths,
+    resume: bool,
+    device: &Device,
+    mut progress: impl FnMut(u64, &StepValues) -> ControlFlow<()>,
+) -> Result<TrainSummary> {
     config.validate()?;
     if data.meta.env != config.env {
         return Err(Error::config(
@@ -224,7 +242,7 @@ fn run_training<O: Objective>(
     record: &DataRecord,
     resume: bool,
     device: &Device,
-    progress: &mut dyn FnMut(u64, &StepValues),
+    progress: &mut dyn FnMut(u64, &StepValues) -> ControlFlow<()>,
 ) -> Result<TrainSummary> {
     let mut adam = Adam::default();
     let mut start = 0;
@@ -294,7 +312,7 @@ fn run_training<O: Objective>(
             clock.elapsed().as_secs_f64()
         )
         .map_err(|e| Error::io(run.metrics(), e))?;
-        progress(step + 1, &values);
+        let flow = progress(step + 1, &values);
         last = Some(values);
         if (step + 1) % config.checkpoint_every == 0 || step + 1 == config.steps {
             save_checkpoint(
@@ -303,6 +321,20 @@ fn run_training<O: Objective>(
                 Some(&adam),
                 &CheckpointMeta { step: step + 1 },
             )?;
+        }
+        if flow.is_break() && step + 1 < config.steps {
+            let kept = match ((step + 1) / config.checkpoint_every) * config.checkpoint_every {
+                0 if !resume => "no checkpoint was written yet".to_string(),
+                0 => format!("the checkpoint in {} is kept", run.checkpoint().display()),
+                good => format!(
+                    "the checkpoint of step {good} in {} is kept; --resume continues from it",
+                    run.checkpoint().display()
+                ),
+            };
+            return Err(Error::Interrupted(format!(
+                "training stopped after step {}; {kept}",
+                step + 1
+            )));
         }
     }
     Ok(TrainSummary {

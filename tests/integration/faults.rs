@@ -249,3 +249,38 @@ fn resume_refuses_a_dataset_changed_under_the_run() {
     small_dataset(0).save(&data, true).unwrap();
     succeeds(&args);
 }
+
+#[test]
+fn an_interrupted_run_keeps_its_last_checkpoint_and_resumes_to_the_same_weights() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, config_path) = tiny_training(dir.path(), 10);
+    let reference = dir.path().join("reference");
+    succeeds(&train_args(&data, &config_path, &reference));
+    let dataset = Dataset::load(&data).unwrap();
+    let config = procl::train::config_from_toml(&config_path, EnvKind::PointMass, None).unwrap();
+    let device = procl::model::cpu_device();
+    let run = procl::train::RunPaths::new(dir.path().join("run"));
+    let stop_after = |last: u64| {
+        move |step: u64, _: &procl::losses::StepValues| {
+            if step == last {
+                std::ops::ControlFlow::Break(())
+            } else {
+                std::ops::ControlFlow::Continue(())
+            }
+        }
+    };
+    let err =
+        procl::train::train_interruptible(&config, &dataset, &run, false, &device, stop_after(7))
+            .unwrap_err();
+    assert!(matches!(err, procl::Error::Interrupted(_)), "{err}");
+    let message = err.to_string();
+    assert!(
+        message.contains("after step 7") && message.contains("step 5"),
+        "{message}"
+    );
+    procl::train::train(&config, &dataset, &run, true, &device, |_, _| {}).unwrap();
+    assert_eq!(
+        std::fs::read(run.checkpoint()).unwrap(),
+        std::fs::read(reference.join("model.safetensors")).unwrap()
+    );
+}
