@@ -85,6 +85,24 @@ fn broken_custom_arrays_get_one_line_errors() {
 }
 
 #[test]
+fn a_corrupted_byte_in_an_uncompressed_file_is_caught_by_its_checksum() {
+    // np.savez stores arrays uncompressed, so a flipped pixel still parses as a pixel; the
+    // archive's CRC-32 is what refuses it.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("camera.npz");
+    let (obs, actions) = recorded(2, 6);
+    write_custom(&path, &obs, &actions, Some(0.05));
+    let mut bytes = std::fs::read(&path).unwrap();
+    bytes[4096] ^= 0x10; // inside `obs`' pixels (the archive starts with it)
+    std::fs::write(&path, &bytes).unwrap();
+    let err = Dataset::load(&path).unwrap_err().to_string();
+    assert!(
+        err.contains("array `obs`") && err.contains("checksum"),
+        "{err}"
+    );
+}
+
+#[test]
 fn custom_data_trains_from_the_command_line_without_state_diagnostics() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("camera.npz");
