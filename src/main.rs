@@ -394,12 +394,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let base = procl::train::ConfigBase::for_dataset(&dataset, recipe)?;
             let method = method.map(|m| m.parse::<Method>()).transpose()?;
             let mut table = match &config {
-                Some(path) => {
-                    let text = std::fs::read_to_string(path)
-                        .with_context(|| format!("reading {}", path.display()))?;
-                    text.parse::<toml::Table>()
-                        .with_context(|| format!("parsing {}", path.display()))?
-                }
+                Some(path) => procl::train::read_config_table(path)?,
                 None => toml::Table::new(),
             };
             if let Some(seed) = seed {

@@ -624,12 +624,7 @@ fn train<'py>(
         let method = method.map(|m| m.parse()).transpose()?;
         let recipe = preset_env.map(|e| e.parse()).transpose()?;
         let mut table = match &config_path {
-            Some(path) => {
-                let text = std::fs::read_to_string(path).map_err(|e| procl::Error::io(path, e))?;
-                text.parse::<toml::Table>().map_err(|e| {
-                    procl::Error::config(path.display().to_string(), e.message().to_string())
-                })?
-            }
+            Some(path) => procl::train::read_config_table(path)?,
             None => toml::Table::new(),
         };
         if let Some(text) = overrides_json {

@@ -10,7 +10,10 @@ use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::mpc::LatentStep;
+use super::mpc::{
+    LatentStep, apply_first_action, dynamics_step, require_non_negative, require_positive,
+    shifted_plan,
+};
 use crate::control::{FeedbackLaw, LatentPolicy};
 use crate::model::{Dynamics, to_vec};
 
@@ -56,33 +59,24 @@ impl Default for IlqrConfig {
 
 impl IlqrConfig {
     pub fn validate(&self) -> crate::Result<()> {
-        for (field, value) in [
-            ("horizon", self.horizon),
-            ("candidates", self.candidates),
-            ("iterations", self.iterations),
-            ("line_search", self.line_search.len()),
-        ] {
-            if value == 0 {
-                return Err(crate::Error::config(
-                    format!("ilqr.{field}"),
-                    "must be at least 1",
-                ));
-            }
-        }
-        let numbers = [
-            ("q_h", self.q_h),
-            ("q_v", self.q_v),
-            ("r", self.r),
-            ("regularisation", self.regularisation),
-        ];
-        for (field, value) in numbers {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(crate::Error::config(
-                    format!("ilqr.{field}"),
-                    format!("{value} is not a non-negative number"),
-                ));
-            }
-        }
+        require_positive(
+            "ilqr",
+            &[
+                ("horizon", self.horizon),
+                ("candidates", self.candidates),
+                ("iterations", self.iterations),
+                ("line_search", self.line_search.len()),
+            ],
+        )?;
+        require_non_negative(
+            "ilqr",
+            &[
+                ("q_h", self.q_h),
+                ("q_v", self.q_v),
+                ("r", self.r),
+                ("regularisation", self.regularisation),
+            ],
+        )?;
         if !(self.jacobian_step.is_finite() && self.jacobian_step > 0.0) {
             return Err(crate::Error::config("ilqr.jacobian_step", "must be > 0"));
         }
@@ -398,16 +392,7 @@ impl FeedbackLaw for IlqrMpc {
         u: &mut [f64],
     ) {
         let (horizon, du) = (self.config.horizon, h.len());
-        // Warm start: the previous plan shifted by one step, its last step repeated; an
-        // episode starts from doing nothing.
-        let mut warm = std::mem::take(&mut self.plan);
-        if warm.len() != horizon {
-            warm = vec![vec![0.0; du]; horizon];
-        } else if horizon > 1 {
-            warm.rotate_left(1);
-            warm[horizon - 1] = warm[horizon - 2].clone();
-        }
-        let mut starts = vec![warm];
+        let mut starts = vec![shifted_plan(std::mem::take(&mut self.plan), horizon, du)];
         for _ in 1..self.config.candidates {
             starts.push(
                 (0..horizon)
@@ -417,20 +402,9 @@ impl FeedbackLaw for IlqrMpc {
         }
         let x0: Vec<f64> = h.iter().chain(v).copied().collect();
         let target: Vec<f64> = h_target.iter().chain(v_target).copied().collect();
-        let (dynamics, dt) = (&self.dynamics, self.dt);
-        let step = |h, v, u| {
-            let next = dynamics.forward(h, v, u, dt);
-            (next.h_next, next.v_next)
-        };
+        let step = dynamics_step(&self.dynamics, self.dt);
         self.plan = ilqr_plan(&step, &self.config, &x0, &target, starts, &self.device);
-        let first = self.plan.first().cloned().unwrap_or_else(|| vec![0.0; du]);
-        for (ui, pi) in u.iter_mut().zip(first) {
-            *ui = if pi.is_finite() {
-                pi.clamp(-1.0, 1.0)
-            } else {
-                0.0
-            };
-        }
+        apply_first_action(&self.plan, u);
     }
 }
 

@@ -49,40 +49,91 @@ impl Default for MpcConfig {
 
 impl MpcConfig {
     pub fn validate(&self) -> crate::Result<()> {
-        let positive = [
-            ("horizon", self.horizon),
-            ("samples", self.samples),
-            ("elites", self.elites),
-            ("iterations", self.iterations),
-        ];
-        for (field, value) in positive {
-            if value == 0 {
-                return Err(crate::Error::config(
-                    format!("mpc.{field}"),
-                    "must be at least 1",
-                ));
-            }
-        }
+        require_positive(
+            "mpc",
+            &[
+                ("horizon", self.horizon),
+                ("samples", self.samples),
+                ("elites", self.elites),
+                ("iterations", self.iterations),
+            ],
+        )?;
         if self.elites > self.samples {
             return Err(crate::Error::config(
                 "mpc.elites",
                 "cannot exceed mpc.samples",
             ));
         }
-        for (field, value) in [
-            ("initial_std", self.initial_std),
-            ("q_h", self.q_h),
-            ("q_v", self.q_v),
-            ("r", self.r),
-        ] {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(crate::Error::config(
-                    format!("mpc.{field}"),
-                    format!("{value} is not a non-negative number"),
-                ));
-            }
+        require_non_negative(
+            "mpc",
+            &[
+                ("initial_std", self.initial_std),
+                ("q_h", self.q_h),
+                ("q_v", self.q_v),
+                ("r", self.r),
+            ],
+        )
+    }
+}
+
+/// Refuses, by `section.field`, a count below 1.
+pub(crate) fn require_positive(section: &str, counts: &[(&str, usize)]) -> crate::Result<()> {
+    match counts.iter().find(|(_, value)| *value == 0) {
+        Some((field, _)) => Err(crate::Error::config(
+            format!("{section}.{field}"),
+            "must be at least 1",
+        )),
+        None => Ok(()),
+    }
+}
+
+/// Refuses, by `section.field`, a weight that is negative or not finite.
+pub(crate) fn require_non_negative(section: &str, weights: &[(&str, f64)]) -> crate::Result<()> {
+    match weights
+        .iter()
+        .find(|(_, value)| !(value.is_finite() && *value >= 0.0))
+    {
+        Some((field, value)) => Err(crate::Error::config(
+            format!("{section}.{field}"),
+            format!("{value} is not a non-negative number"),
+        )),
+        None => Ok(()),
+    }
+}
+
+/// The warm start of a receding-horizon plan: the previous plan shifted by one step with its
+/// last step repeated, or doing nothing at the start of an episode (no previous plan).
+pub(crate) fn shifted_plan(previous: Vec<Vec<f64>>, horizon: usize, du: usize) -> Vec<Vec<f64>> {
+    let mut plan = previous;
+    if plan.len() != horizon {
+        return vec![vec![0.0; du]; horizon];
+    }
+    if horizon > 1 {
+        plan.rotate_left(1);
+        plan[horizon - 1] = plan[horizon - 2].clone();
+    }
+    plan
+}
+
+/// Writes a plan's first action into `u`, within the bounds (a non-finite component is 0).
+pub(crate) fn apply_first_action(plan: &[Vec<f64>], u: &mut [f64]) {
+    let first = plan.first().map(Vec::as_slice).unwrap_or(&[]);
+    u.fill(0.0);
+    for (ui, &pi) in u.iter_mut().zip(first) {
+        if pi.is_finite() {
+            *ui = pi.clamp(-1.0, 1.0);
         }
-        Ok(())
+    }
+}
+
+/// One batched step of the learned dynamics `g` as a [`LatentStep`].
+pub(crate) fn dynamics_step(
+    dynamics: &Dynamics,
+    dt: f64,
+) -> impl Fn(Tensor<2>, Tensor<2>, Tensor<2>) -> (Tensor<2>, Tensor<2>) + '_ {
+    move |h, v, u| {
+        let next = dynamics.forward(h, v, u, dt);
+        (next.h_next, next.v_next)
     }
 }
 
@@ -208,23 +259,8 @@ impl FeedbackLaw for CemMpc {
         v_target: &[f64],
         u: &mut [f64],
     ) {
-        // Warm start: the previous plan shifted by one step, the last step repeated; an
-        // episode starts from doing nothing.
-        let mut warm = std::mem::take(&mut self.plan);
-        if warm.is_empty() {
-            warm = vec![vec![0.0; h.len()]; self.config.horizon];
-        } else if warm.len() > 1 {
-            warm.rotate_left(1);
-            let last = warm[warm.len() - 2].clone();
-            if let Some(end) = warm.last_mut() {
-                *end = last;
-            }
-        }
-        let (dynamics, dt) = (&self.dynamics, self.dt);
-        let step = |h, v, u| {
-            let next = dynamics.forward(h, v, u, dt);
-            (next.h_next, next.v_next)
-        };
+        let warm = shifted_plan(std::mem::take(&mut self.plan), self.config.horizon, h.len());
+        let step = dynamics_step(&self.dynamics, self.dt);
         self.plan = cem_plan(
             &step,
             &self.config,
@@ -235,13 +271,7 @@ impl FeedbackLaw for CemMpc {
             &mut self.rng,
             &self.device,
         );
-        for (ui, &pi) in u.iter_mut().zip(&self.plan[0]) {
-            *ui = if pi.is_finite() {
-                pi.clamp(-1.0, 1.0)
-            } else {
-                0.0
-            };
-        }
+        apply_first_action(&self.plan, u);
     }
 }
 

@@ -313,7 +313,8 @@ fn unravel(mut flat: usize, shape: &[usize]) -> Vec<usize> {
     index
 }
 
-/// [`read_array`] for an array a dataset may leave out: `None` when it is absent.
+/// Reads one named array, or `None` when the archive has no entry of that name; a wrong dtype
+/// or rank becomes a plain message.
 fn read_optional_array<R, A, D>(
     npz: &mut NpzReader<R>,
     path: &Path,
@@ -324,17 +325,28 @@ where
     A: ReadableElement,
     D: Dimension,
 {
-    let names = npz
-        .names()
-        .map_err(|e| Error::dataset(path, format!("corrupt archive: {e}")))?;
-    if names
-        .iter()
-        .any(|n| n == name || *n == format!("{name}.npy"))
-    {
-        read_array(npz, path, name).map(Some)
-    } else {
-        Ok(None)
-    }
+    let names = archive_names(npz, path)?;
+    let entry = [name.to_string(), format!("{name}.npy")]
+        .into_iter()
+        .find(|n| names.contains(n));
+    let Some(entry) = entry else {
+        return Ok(None);
+    };
+    npz.by_name(&entry).map(Some).map_err(|e| {
+        Error::dataset(
+            path,
+            format!(
+                "array `{name}` could not be read as {} with {} dimensions: {e}",
+                std::any::type_name::<A>(),
+                D::NDIM.map_or("any".into(), |n| n.to_string())
+            ),
+        )
+    })
+}
+
+fn archive_names<R: Read + Seek>(npz: &mut NpzReader<R>, path: &Path) -> Result<Vec<String>> {
+    npz.names()
+        .map_err(|e| Error::dataset(path, format!("corrupt archive: {e}")))
 }
 
 /// A writer that keeps its first error and then accepts and discards everything: the zip
@@ -395,26 +407,14 @@ where
     A: ReadableElement,
     D: Dimension,
 {
-    let names = npz
-        .names()
-        .map_err(|e| Error::dataset(path, format!("corrupt archive: {e}")))?;
-    let entry = [name.to_string(), format!("{name}.npy")]
-        .into_iter()
-        .find(|n| names.contains(n));
-    let Some(entry) = entry else {
-        return Err(Error::dataset(
-            path,
-            format!("missing array `{name}` (found: {})", names.join(", ")),
-        ));
-    };
-    npz.by_name(&entry).map_err(|e| {
-        Error::dataset(
+    match read_optional_array(npz, path, name)? {
+        Some(array) => Ok(array),
+        None => Err(Error::dataset(
             path,
             format!(
-                "array `{name}` could not be read as {} with {} dimensions: {e}",
-                std::any::type_name::<A>(),
-                D::NDIM.map_or("any".into(), |n| n.to_string())
+                "missing array `{name}` (found: {})",
+                archive_names(npz, path)?.join(", ")
             ),
-        )
-    })
+        )),
+    }
 }

@@ -6,7 +6,10 @@ use std::path::PathBuf;
 use burn::tensor::Device;
 
 use super::plots::{save_episode_gif, save_latent_plot, save_reach_plot};
-use super::reach::{MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise};
+use super::reach::{
+    EpisodeRecord, MethodSummary, ReachConfig, ReachReport, evaluate_reach, summarise,
+};
+use crate::baselines::ilqr::{IlqrMpc, IlqrPolicy};
 use crate::baselines::mpc::{CemMpc, MpcConfig, MpcPolicy};
 use crate::baselines::nvae::LatentPidPolicy;
 use crate::control::{
@@ -167,6 +170,17 @@ pub fn evaluate_run(
     evaluate_run_with(run, protocol, &Controller::Feedback, progress)
 }
 
+/// The reach episodes of a planner's policy, and its control times.
+fn reach_with<L: FeedbackLaw>(
+    env: crate::envs::EnvKind,
+    protocol: &ReachConfig,
+    mut policy: LatentPolicy<L>,
+    progress: &mut impl FnMut(usize),
+) -> Result<(Vec<EpisodeRecord>, Vec<f64>)> {
+    let records = evaluate_reach(env, protocol, &mut policy, true, progress)?;
+    Ok((records, policy.control_times_s))
+}
+
 /// As [`evaluate_run`] with the given controller on the latent.
 pub fn evaluate_run_with(
     run: &RunPaths,
@@ -186,24 +200,16 @@ pub fn evaluate_run_with(
         (Controller::Mpc(mpc), TrainedModel::Procl(model)) => {
             let dt = env.make().control_dt_s();
             let law = CemMpc::new(model.dynamics, device.clone(), mpc.clone(), dt)?;
-            let mut policy = MpcPolicy::new(model.encoder, device, law, dt);
-            let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
-            let label = format!("{} + MPC", config.method.label());
-            (label, records, policy.control_times_s)
+            let policy = MpcPolicy::new(model.encoder, device, law, dt);
+            let (records, times) = reach_with(env, protocol, policy, &mut progress)?;
+            (format!("{} + MPC", config.method.label()), records, times)
         }
         (Controller::Ilqr(ilqr), TrainedModel::Procl(model)) => {
             let dt = env.make().control_dt_s();
-            let law = crate::baselines::ilqr::IlqrMpc::new(
-                model.dynamics,
-                device.clone(),
-                ilqr.clone(),
-                dt,
-            )?;
-            let mut policy =
-                crate::baselines::ilqr::IlqrPolicy::new(model.encoder, device, law, dt);
-            let records = evaluate_reach(env, protocol, &mut policy, true, &mut progress)?;
-            let label = format!("{} + iLQR", config.method.label());
-            (label, records, policy.control_times_s)
+            let law = IlqrMpc::new(model.dynamics, device.clone(), ilqr.clone(), dt)?;
+            let policy = IlqrPolicy::new(model.encoder, device, law, dt);
+            let (records, times) = reach_with(env, protocol, policy, &mut progress)?;
+            (format!("{} + iLQR", config.method.label()), records, times)
         }
         (Controller::Mpc(_) | Controller::Ilqr(_), TrainedModel::Nvae(_)) => {
             return Err(Error::config(

@@ -463,15 +463,19 @@ pub fn config_from_toml(
     base: impl Into<ConfigBase>,
     method: Option<Method>,
 ) -> Result<TrainConfig> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let table: toml::Table = text.parse().map_err(|e: toml::de::Error| {
-        Error::config(path.display().to_string(), e.message().to_string())
-    })?;
-    config_from_table(table, base, method).map_err(|e| match e {
+    config_from_table(read_config_table(path)?, base, method).map_err(|e| match e {
         Error::InvalidConfig { field, message } => {
             Error::config(format!("{}: {field}", path.display()), message)
         }
         other => other,
+    })
+}
+
+/// The keys of the TOML config file at `path`, unresolved (a syntax error names the file).
+pub fn read_config_table(path: &Path) -> Result<toml::Table> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    text.parse().map_err(|e: toml::de::Error| {
+        Error::config(path.display().to_string(), e.message().to_string())
     })
 }
 

@@ -12,7 +12,8 @@ pub use batches::loss_inputs;
 pub(crate) use batches::{batch_tensors, normal_tensor, sample_batch, step_rng};
 pub(crate) use config::merge;
 pub use config::{
-    ConfigBase, Method, Preset, TrainConfig, config_from_table, config_from_toml, training_budget,
+    ConfigBase, Method, Preset, TrainConfig, config_from_table, config_from_toml,
+    read_config_table, training_budget,
 };
 pub use nvae::elbo_inputs;
 pub use run_folder::{DataRecord, RunPaths, TrainedModel};
@@ -287,17 +288,10 @@ fn run_training<O: Objective>(
     for step in start..config.steps {
         let (total, values) = objective.loss(&model, step);
         if !values.is_finite() {
-            let kept = match (step / config.checkpoint_every) * config.checkpoint_every {
-                0 if !resume => "no checkpoint was written yet".to_string(),
-                0 => format!("the checkpoint in {} is kept", run.checkpoint().display()),
-                good => format!(
-                    "the last good checkpoint (step {good}) is kept in {}",
-                    run.checkpoint().display()
-                ),
-            };
             return Err(Error::Diverged(format!(
-                "non-finite loss at step {} ({values}); {kept}",
-                step + 1
+                "non-finite loss at step {} ({values}); {}",
+                step + 1,
+                kept_checkpoint(run, config, step, resume)
             )));
         }
         let grads = total.backward();
@@ -323,17 +317,16 @@ fn run_training<O: Objective>(
             )?;
         }
         if flow.is_break() && step + 1 < config.steps {
-            let kept = match ((step + 1) / config.checkpoint_every) * config.checkpoint_every {
-                0 if !resume => "no checkpoint was written yet".to_string(),
-                0 => format!("the checkpoint in {} is kept", run.checkpoint().display()),
-                good => format!(
-                    "the checkpoint of step {good} in {} is kept; --resume continues from it",
-                    run.checkpoint().display()
-                ),
-            };
+            let has_checkpoint = resume || step + 1 >= config.checkpoint_every;
             return Err(Error::Interrupted(format!(
-                "training stopped after step {}; {kept}",
-                step + 1
+                "training stopped after step {}; {}{}",
+                step + 1,
+                kept_checkpoint(run, config, step + 1, resume),
+                if has_checkpoint {
+                    "; --resume continues from it"
+                } else {
+                    ""
+                }
             )));
         }
     }
@@ -342,6 +335,19 @@ fn run_training<O: Objective>(
         last,
         seconds: clock.elapsed().as_secs_f64(),
     })
+}
+
+/// What a run stopped after `steps_done` steps keeps: its last periodic checkpoint, the one it
+/// resumed from, or nothing yet.
+fn kept_checkpoint(run: &RunPaths, config: &TrainConfig, steps_done: u64, resume: bool) -> String {
+    match (steps_done / config.checkpoint_every) * config.checkpoint_every {
+        0 if !resume => "no checkpoint was written yet".to_string(),
+        0 => format!("the checkpoint in {} is kept", run.checkpoint().display()),
+        good => format!(
+            "the last good checkpoint (step {good}) is kept in {}",
+            run.checkpoint().display()
+        ),
+    }
 }
 
 /// metrics.csv's first line for a method logging `terms`.
