@@ -41,14 +41,17 @@ fn train_step(c: &mut Criterion) {
         group.bench_function(name, |b| {
             b.iter(|| {
                 let current = model.take().expect("model");
-                let inputs = loss_inputs(&current, &data, &config, step, &device);
+                let (inputs, trunk) = loss_inputs(&current, &data, &config, step, &device);
                 let terms = procl_loss(
                     &config.loss,
                     &current.dynamics,
                     inputs,
                     data.meta.control_dt_s,
                 );
-                let grads = terms.total.backward();
+                let mut grads = terms.total.backward();
+                if let Some(trunk) = trunk {
+                    trunk.backward(&mut grads);
+                }
                 model = Some(adam.step(config.learning_rate, current, &grads));
                 step += 1;
             })

@@ -8,6 +8,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::POLAR_FADE_RADIUS;
 use super::host_encoder::{HostConv, HostEncoder, HostHead, HostLinear};
+use super::trunk::{TrunkLayer, TrunkTape};
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 use crate::error::{Error, Result};
 
@@ -421,6 +422,56 @@ impl Encoder {
     fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
         let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16], or 32x32 at stride 1
+        let x = match &self.keypoints {
+            Some(head) => head.features.forward(x), // [n, K, 16, 16] (32x32 at stride 1)
+            None => x,
+        };
+        self.head_from_trunk(x)
+    }
+
+    /// The trunk's convolutions: conv1 and conv2 (each with its ReLU) and, with the keypoint
+    /// head, its feature maps.
+    fn trunk_layers(&self) -> Vec<TrunkLayer<'_>> {
+        let mut layers = vec![
+            TrunkLayer {
+                conv: &self.conv1,
+                relu: true,
+            },
+            TrunkLayer {
+                conv: &self.conv2,
+                relu: true,
+            },
+        ];
+        if let Some(head) = &self.keypoints {
+            layers.push(TrunkLayer {
+                conv: &head.features,
+                relu: false,
+            });
+        }
+        layers
+    }
+
+    /// `h` of `frames` (RGB u8, 64x64) for a training step. On the CPU with autodiff the
+    /// trunk runs on the host (see [`TrunkTape`]): call [`TrunkTape::backward`] on the returned
+    /// tape after the loss's `backward` to complete the gradients. Elsewhere the whole encoder
+    /// runs in burn and there is no tape.
+    pub fn forward_training(
+        &self,
+        frames: &[&[u8]],
+        device: &Device,
+    ) -> (Tensor<2>, Option<TrunkTape>) {
+        if *device != super::cpu_device() || !device.is_autodiff() {
+            let input = super::frames_to_tensor(frames.iter().copied(), device);
+            return (self.forward(input), None);
+        }
+        let tape = TrunkTape::forward(&self.trunk_layers(), frames, device);
+        let h = self.orient(self.head_from_trunk(tape.output()));
+        (h, Some(tape))
+    }
+
+    /// The head's output before `Q`, from the trunk's output: conv2's (MLP head) or the
+    /// keypoint feature maps.
+    fn head_from_trunk(&self, x: Tensor<4>) -> Tensor<2> {
         if let Some(head) = &self.mlp {
             let x = relu(head.conv3.forward(x)); // [n, 32, 8, 8]
             let n = x.dims()[0];
@@ -431,7 +482,7 @@ impl Encoder {
             .keypoints
             .as_ref()
             .expect("encoder has one head by construction");
-        let maps = head.features.forward(x); // [n, K, 16, 16] (32x32 at stride 1)
+        let maps = x;
         let [n, k, rows, cols] = maps.dims();
         let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
         let logits = maps.reshape([n, k, rows * cols]) * sharpness; // [n, K, cells]
@@ -496,7 +547,7 @@ impl Encoder {
     }
 }
 
-fn host_conv(conv: &Conv2d) -> HostConv {
+pub(super) fn host_conv(conv: &Conv2d) -> HostConv {
     let [cout, cin, kernel, _] = conv.weight.dims();
     let padding = match conv.padding {
         PaddingConfig2d::Explicit(top, ..) => top,

@@ -13,8 +13,9 @@ use crate::envs::FRAME_PX;
 /// the `[pixel, channel]` input.
 #[derive(Debug, Clone)]
 pub(crate) struct HostConv {
-    weight: Vec<f32>,
-    bias: Vec<f32>,
+    /// `[out, kh, kw, in]` row-major: `[out, width]` with `width = kh kw in`.
+    pub weight: Vec<f32>,
+    pub bias: Vec<f32>,
     pub channels: [usize; 2],
     pub kernel: usize,
     pub stride: usize,
@@ -54,40 +55,49 @@ impl HostConv {
         }
     }
 
+    /// A weight (or its gradient) in the host layout `[out, kh, kw, in]` back in burn's
+    /// `[out, in, kh, kw]`.
+    pub fn weight_to_burn_layout(&self, weight: &[f32]) -> Vec<f32> {
+        let [cin, cout] = self.channels;
+        let k = self.kernel;
+        let mut burn = vec![0.0; weight.len()];
+        for o in 0..cout {
+            for c in 0..cin {
+                for ky in 0..k {
+                    for kx in 0..k {
+                        burn[((o * cin + c) * k + ky) * k + kx] =
+                            weight[((o * k + ky) * k + kx) * cin + c];
+                    }
+                }
+            }
+        }
+        burn
+    }
+
     pub fn out_side(&self, side: usize) -> usize {
         (side + 2 * self.padding - self.kernel) / self.stride + 1
     }
 
-    /// `input` is `[side * side, in]` (pixels row-major, channels innermost); writes
-    /// `[out_side^2, out]` into `out`, with a ReLU when `relu`.
-    fn forward(
-        &self,
-        input: &[f32],
-        side: usize,
-        columns: &mut Vec<f32>,
-        out: &mut Vec<f32>,
-        relu: bool,
-    ) {
-        let [cin, cout] = self.channels;
+    /// Width of a patch row of the im2col matrix: `kh kw in`.
+    pub fn width(&self) -> usize {
+        self.kernel * self.kernel * self.channels[0]
+    }
+
+    /// Whether the convolution is a pointwise one, whose im2col matrix is its input.
+    pub fn is_pointwise(&self) -> bool {
+        (self.kernel, self.stride, self.padding) == (1, 1, 0)
+    }
+
+    /// Calls `visit(column, input, len)` for every run of `len` floats that im2col copies from
+    /// `input [side * side, in]` at `input` to the columns `[out_side^2, width]` at `column`;
+    /// entries no run covers (the padding) are 0 in the columns.
+    pub fn for_each_patch_run(&self, side: usize, mut visit: impl FnMut(usize, usize, usize)) {
+        let cin = self.channels[0];
         let (k, s, p) = (self.kernel, self.stride, self.padding);
         let o = self.out_side(side);
-        // The GEMM overwrites every entry.
-        out.resize(o * o * cout, 0.0);
-        if (k, s, p) == (1, 1, 0) {
-            // A pointwise convolution is the GEMM itself.
-            gemm_into(out, input, &self.weight, o * o, cin, cout);
-            add_bias(out, &self.bias, relu);
-            return;
-        }
-        let width = k * k * cin;
-        // Each call writes the same interior entries; the padding's stay 0 from the first.
-        if columns.len() != o * o * width {
-            columns.clear();
-            columns.resize(o * o * width, 0.0);
-        }
+        let width = self.width();
         for oy in 0..o {
             for ox in 0..o {
-                let row = &mut columns[(oy * o + ox) * width..][..width];
                 // The patch's columns inside the image: [x0, x1) of kx.
                 let left = (ox * s) as isize - p as isize;
                 let x0 = (-left).max(0) as usize;
@@ -101,15 +111,51 @@ impl HostConv {
                         continue;
                     }
                     let from = (iy as usize * side) as isize + left + x0 as isize;
-                    let from = from as usize * cin;
-                    let len = (x1 - x0) * cin;
-                    copy_short(
-                        &mut row[(ky * k + x0) * cin..][..len],
-                        &input[from..][..len],
+                    visit(
+                        (oy * o + ox) * width + (ky * k + x0) * cin,
+                        from as usize * cin,
+                        (x1 - x0) * cin,
                     );
                 }
             }
         }
+    }
+
+    /// Writes the im2col matrix `[out_side^2, width]` of one input `[side * side, in]` into
+    /// `columns`, whose padding entries must already be 0.
+    pub fn im2col(&self, input: &[f32], side: usize, columns: &mut [f32]) {
+        self.for_each_patch_run(side, |column, from, len| {
+            copy_short(&mut columns[column..][..len], &input[from..][..len]);
+        });
+    }
+
+    /// `input` is `[side * side, in]` (pixels row-major, channels innermost); writes
+    /// `[out_side^2, out]` into `out`, with a ReLU when `relu`.
+    fn forward(
+        &self,
+        input: &[f32],
+        side: usize,
+        columns: &mut Vec<f32>,
+        out: &mut Vec<f32>,
+        relu: bool,
+    ) {
+        let [cin, cout] = self.channels;
+        let o = self.out_side(side);
+        // The GEMM overwrites every entry.
+        out.resize(o * o * cout, 0.0);
+        if self.is_pointwise() {
+            // A pointwise convolution is the GEMM itself.
+            gemm_into(out, input, &self.weight, o * o, cin, cout);
+            add_bias(out, &self.bias, relu);
+            return;
+        }
+        let width = self.width();
+        // Each call writes the same interior entries; the padding's stay 0 from the first.
+        if columns.len() != o * o * width {
+            columns.clear();
+            columns.resize(o * o * width, 0.0);
+        }
+        self.im2col(input, side, columns);
         gemm_into(out, columns, &self.weight, o * o, width, cout);
         add_bias(out, &self.bias, relu);
     }
@@ -117,7 +163,7 @@ impl HostConv {
 
 /// Copies a few floats (a patch row of 9-128) in 4-wide moves: too short for memcpy's call
 /// to pay.
-fn copy_short(dst: &mut [f32], src: &[f32]) {
+pub(crate) fn copy_short(dst: &mut [f32], src: &[f32]) {
     let mut dst_chunks = dst.chunks_exact_mut(4);
     let mut src_chunks = src.chunks_exact(4);
     for (d, s) in (&mut dst_chunks).zip(&mut src_chunks) {
@@ -157,7 +203,7 @@ impl HostLinear {
 
 /// `out [m, n] = lhs [m, k] * rhs^T`, `rhs` row-major `[n, k]` (a weight `[out, in]`), on the
 /// calling thread.
-fn gemm_into(out: &mut [f32], lhs: &[f32], rhs: &[f32], m: usize, k: usize, n: usize) {
+pub(crate) fn gemm_into(out: &mut [f32], lhs: &[f32], rhs: &[f32], m: usize, k: usize, n: usize) {
     assert!(out.len() >= m * n && lhs.len() >= m * k && rhs.len() >= n * k);
     // SAFETY: the asserts bound every index the strides below reach: dst `m x n` row-major,
     // lhs `m x k` row-major, rhs read as `k x n` with column stride k (its row-major `n x k`).
@@ -186,7 +232,7 @@ fn gemm_into(out: &mut [f32], lhs: &[f32], rhs: &[f32], m: usize, k: usize, n: u
     }
 }
 
-fn add_bias(out: &mut [f32], bias: &[f32], relu: bool) {
+pub(crate) fn add_bias(out: &mut [f32], bias: &[f32], relu: bool) {
     for row in out.chunks_exact_mut(bias.len()) {
         for (v, b) in row.iter_mut().zip(bias) {
             *v += b;

@@ -7,11 +7,13 @@ mod dynamics;
 mod encoder;
 mod host_encoder;
 mod init;
+mod trunk;
 
 pub use dynamics::{Dynamics, DynamicsConfig, Transition};
 pub use encoder::{Encoder, EncoderConfig, EncoderHead};
 pub use host_encoder::HostEncoder;
 pub use init::reinit_params;
+pub use trunk::TrunkTape;
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};

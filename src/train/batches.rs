@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 use super::TrainConfig;
 use crate::data::Dataset;
 use crate::losses::LossInputs;
-use crate::model::{ProclModel, frames_to_tensor};
+use crate::model::{ProclModel, TrunkTape, frames_to_tensor};
 
 /// Frames for the data-dependent latent-scale initialisation: 256 drawn from a stream of
 /// `seed` that training batches never use.
@@ -85,55 +85,68 @@ pub(crate) fn step_rng(seed: u64, step: u64) -> ChaCha8Rng {
     rng
 }
 
-/// The frames of the samples `batch` as one network input `[3n, 3, 64, 64]` (every `i_{t-1}`,
-/// then every `i_t`, then every `i_{t+1}`) and their actions `u_t` `[n, du]`.
-pub(crate) fn batch_tensors(
-    data: &Dataset,
-    batch: &[(usize, usize)],
-    device: &Device,
-) -> (Tensor<4>, Tensor<2>) {
-    let frames = batch
+/// The frames of the samples `batch`: every `i_{t-1}`, then every `i_t`, then every `i_{t+1}`.
+pub(crate) fn batch_frames<'a>(data: &'a Dataset, batch: &[(usize, usize)]) -> Vec<&'a [u8]> {
+    batch
         .iter()
         .map(|&(e, t)| data.frame(e, t - 1))
         .chain(batch.iter().map(|&(e, t)| data.frame(e, t)))
-        .chain(batch.iter().map(|&(e, t)| data.frame(e, t + 1)));
-    let frames: Vec<&[u8]> = frames.collect();
+        .chain(batch.iter().map(|&(e, t)| data.frame(e, t + 1)))
+        .collect()
+}
+
+/// The actions `u_t` of the samples `batch`, `[n, du]`.
+pub(crate) fn batch_actions(
+    data: &Dataset,
+    batch: &[(usize, usize)],
+    device: &Device,
+) -> Tensor<2> {
     let du = data.action_dim();
     let actions: Vec<f32> = batch
         .iter()
         .flat_map(|&(e, t)| (0..du).map(move |i| (e, t, i)))
         .map(|(e, t, i)| data.actions[[e, t, i]])
         .collect();
+    Tensor::from_data(TensorData::new(actions, [batch.len(), du]), device)
+}
+
+/// The frames of the samples `batch` as one network input `[3n, 3, 64, 64]` (in
+/// [`batch_frames`]'s order) and their actions `u_t` `[n, du]`.
+pub(crate) fn batch_tensors(
+    data: &Dataset,
+    batch: &[(usize, usize)],
+    device: &Device,
+) -> (Tensor<4>, Tensor<2>) {
+    let frames = batch_frames(data, batch);
     (
         frames_to_tensor(frames.into_iter(), device),
-        Tensor::from_data(TensorData::new(actions, [batch.len(), du]), device),
+        batch_actions(data, batch, device),
     )
 }
 
-/// The encodings and random draws of training step `step` (see [`step_rng`]).
+/// The encodings and random draws of training step `step` (see [`step_rng`]), and the
+/// encoder trunk's tape where it ran on the host: pass it the loss's gradients
+/// ([`TrunkTape::backward`]) before the optimiser step.
 pub fn loss_inputs(
     model: &ProclModel,
     data: &Dataset,
     config: &TrainConfig,
     step: u64,
     device: &Device,
-) -> LossInputs {
+) -> (LossInputs, Option<TrunkTape>) {
     let mut rng = step_rng(config.seed, step);
     let n = config.batch_size;
     let du = data.action_dim();
     // The k-step sign term needs the frame `i_{t+k}` of each sample.
     let reach = config.loss.frames_ahead();
     let batch = sample_batch_reaching(data, &mut rng, n, reach);
-    let (frames, u) = batch_tensors(data, &batch, device);
-    // The frames `i_{t+k}` ride in the same encoder call as the others.
-    let frames = if reach > 1 {
-        let ahead_frames =
-            frames_to_tensor(batch.iter().map(|&(e, t)| data.frame(e, t + reach)), device);
-        Tensor::cat(vec![frames, ahead_frames], 0)
-    } else {
-        frames
-    };
-    let h = model.encoder.forward(frames); // [3n or 4n, du]
+    let u = batch_actions(data, &batch, device);
+    // Every `i_{t-1}`, every `i_t`, every `i_{t+1}`, then every `i_{t+k}`, in one encoder call.
+    let mut frames = batch_frames(data, &batch);
+    if reach > 1 {
+        frames.extend(batch.iter().map(|&(e, t)| data.frame(e, t + reach)));
+    }
+    let (h, trunk) = model.encoder.forward_training(&frames, device); // [3n or 4n, du]
     let ahead = (reach > 1).then(|| {
         let drive = TensorData::new(k_step_drive(data, &batch, reach), [n, du]);
         (
@@ -143,7 +156,7 @@ pub fn loss_inputs(
     });
     let mut permutation: Vec<usize> = (0..n).collect();
     permutation.shuffle(&mut rng);
-    LossInputs {
+    let inputs = LossInputs {
         h_prev: h.clone().narrow(0, 0, n),
         h_now: h.clone().narrow(0, n, n),
         h_next: h.narrow(0, 2 * n, n),
@@ -156,7 +169,8 @@ pub fn loss_inputs(
         ),
         permutation,
         ahead,
-    }
+    };
+    (inputs, trunk)
 }
 
 #[cfg(test)]
@@ -231,7 +245,7 @@ mod tests {
         config.loss.variance_floor = Some(100.0);
         let device = crate::model::cpu_device();
         let model = config.model.init(7, &device).expect("model");
-        let inputs = loss_inputs(&model, &data, &config, 0, &device);
+        let (inputs, _) = loss_inputs(&model, &data, &config, 0, &device);
         let dt = data.meta.control_dt_s;
         let values: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
@@ -255,7 +269,7 @@ mod tests {
         // Switched off, a term is logged as 0 and the header keeps its column.
         config.loss.action_response_sign_weight = 0.0;
         config.loss.variance_floor = None;
-        let inputs = loss_inputs(&model, &data, &config, 0, &device);
+        let (inputs, _) = loss_inputs(&model, &data, &config, 0, &device);
         assert!(inputs.ahead.is_none());
         let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()

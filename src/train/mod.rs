@@ -29,7 +29,7 @@ use burn::tensor::{Device, Tensor};
 use crate::data::Dataset;
 use crate::error::{Error, Result};
 use crate::losses::{LOSS_NAMES, StepValues, procl_loss};
-use crate::model::ProclModel;
+use crate::model::{ProclModel, TrunkTape};
 use crate::train::checkpoint::{Adam, CheckpointMeta, load_checkpoint, save_checkpoint};
 use crate::train::orientation::{LatentOrienter, WindowRule};
 use batches::scale_frames;
@@ -53,8 +53,13 @@ pub(crate) trait Objective {
     fn prepare(&mut self, model: Self::Model) -> Self::Model {
         model
     }
-    /// The loss to minimise at step `step` (0-based) and its logged values.
-    fn loss(&mut self, model: &Self::Model, step: u64) -> (Tensor<1>, StepValues);
+    /// The loss to minimise at step `step` (0-based), its logged values and the encoder
+    /// trunk's tape where the trunk ran outside burn's graph.
+    fn loss(
+        &mut self,
+        model: &Self::Model,
+        step: u64,
+    ) -> (Tensor<1>, StepValues, Option<TrunkTape>);
     /// Runs after the optimiser update of step `step` (0-based).
     fn after_update(&mut self, model: Self::Model, _step: u64) -> Result<Self::Model> {
         Ok(model)
@@ -89,14 +94,18 @@ impl Objective for ProclObjective<'_> {
         model
     }
 
-    fn loss(&mut self, model: &ProclModel, step: u64) -> (Tensor<1>, StepValues) {
+    fn loss(
+        &mut self,
+        model: &ProclModel,
+        step: u64,
+    ) -> (Tensor<1>, StepValues, Option<TrunkTape>) {
         let dt = self.data.meta.control_dt_s;
-        let inputs = loss_inputs(model, self.data, self.config, step, self.device);
+        let (inputs, trunk) = loss_inputs(model, self.data, self.config, step, self.device);
         if let Some(search) = self.search.as_mut() {
             search.observe(&inputs, &self.config.loss, dt);
         }
         let terms = procl_loss(&self.config.loss, &model.dynamics, inputs, dt);
-        (terms.total.clone(), terms.values().into())
+        (terms.total.clone(), terms.values().into(), trunk)
     }
 
     fn after_update(&mut self, model: ProclModel, step: u64) -> Result<ProclModel> {
@@ -286,7 +295,7 @@ fn run_training<O: Objective>(
     let clock = Instant::now();
     let mut last = None;
     for step in start..config.steps {
-        let (total, values) = objective.loss(&model, step);
+        let (total, values, trunk) = objective.loss(&model, step);
         if !values.is_finite() {
             return Err(Error::Diverged(format!(
                 "non-finite loss at step {} ({values}); {}",
@@ -294,7 +303,10 @@ fn run_training<O: Objective>(
                 kept_checkpoint(run, config, step, resume)
             )));
         }
-        let grads = total.backward();
+        let mut grads = total.backward();
+        if let Some(trunk) = trunk {
+            trunk.backward(&mut grads);
+        }
         model = adam.step(config.learning_rate, model, &grads);
         model = objective.after_update(model, step)?;
         let row: Vec<String> = values.values.iter().map(|x| format!("{x:.6}")).collect();

@@ -6,6 +6,7 @@ use super::{Objective, TrainConfig, batch_tensors, normal_tensor, sample_batch, 
 use crate::baselines::nvae::{ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, elbo_loss};
 use crate::data::Dataset;
 use crate::losses::StepValues;
+use crate::model::TrunkTape;
 
 /// The frames, actions and reparameterisation noise of training step `step`, drawn from the
 /// step's own RNG stream (so `--resume` is exact), as ProCL's batches are.
@@ -49,10 +50,10 @@ impl Objective for NvaeObjective<'_> {
     type Model = NvaeModel;
     const METRICS: &'static [&'static str] = &ELBO_NAMES;
 
-    fn loss(&mut self, model: &NvaeModel, step: u64) -> (Tensor<1>, StepValues) {
+    fn loss(&mut self, model: &NvaeModel, step: u64) -> (Tensor<1>, StepValues, Option<TrunkTape>) {
         let inputs = elbo_inputs(self.data, self.config, step, self.device);
         let dt = self.nvae.dt(self.data.meta.control_dt_s);
         let terms = elbo_loss(model, self.nvae, inputs, self.nvae.kl_weight(step), dt);
-        (terms.total.clone(), terms.values())
+        (terms.total.clone(), terms.values(), None)
     }
 }

@@ -1,0 +1,486 @@
+//! The encoder trunk's training path on the CPU: its convolutions forward and backward as
+//! packed GEMMs over fixed chunks of frames, joined to burn's autodiff at the trunk's output.
+//!
+//! burn's CPU backend runs a convolution's backward as transposed convolutions with layout
+//! copies and elementwise passes over every activation, most of a training step. Here each
+//! layer costs one GEMM forward and two backward per chunk of frames (the im2col matrices are
+//! rebuilt from the kept activations rather than stored). The trunk's output enters burn's
+//! graph as a leaf; after `backward` its gradient is carried back through the layers here and
+//! the convolutions' parameter gradients are written into burn's [`Gradients`], where the
+//! optimiser finds them as it finds any other.
+//!
+//! Chunks have a fixed size and their weight gradients are summed in chunk order, so a step's
+//! gradients do not depend on the number of threads.
+
+use burn::nn::conv::Conv2d;
+use burn::tensor::{Device, Gradients, Tensor, TensorData};
+use gemm::Parallelism;
+use rayon::prelude::*;
+
+use super::host_encoder::{HostConv, add_bias, gemm_into};
+use crate::envs::FRAME_PX;
+
+/// Frames per chunk: one task of the thread pool, and the unit of the gradient sum's order.
+const CHUNK_FRAMES: usize = 8;
+
+/// A layer of the trunk: a convolution and whether a ReLU follows it.
+pub(crate) struct TrunkLayer<'a> {
+    pub conv: &'a Conv2d,
+    pub relu: bool,
+}
+
+/// The trunk's forward pass over one batch of frames, kept for its backward pass.
+pub struct TrunkTape {
+    layers: Vec<TapeLayer>,
+    chunks: Vec<ChunkTape>,
+    /// The trunk's output as burn sees it: a leaf `[n, C, s, s]` the head's graph starts from.
+    output: Tensor<4>,
+}
+
+struct TapeLayer {
+    conv: HostConv,
+    relu: bool,
+    /// Side of the layer's input.
+    side: usize,
+    /// The parameters, to address their gradients in burn's [`Gradients`].
+    weight: Tensor<4>,
+    bias: Option<Tensor<1>>,
+}
+
+struct ChunkTape {
+    frames: usize,
+    /// The network input `[frames, 64 * 64, 3]`.
+    input: Vec<f32>,
+    /// Each layer's output `[frames, side^2, channels]`, after its ReLU.
+    outputs: Vec<Vec<f32>>,
+}
+
+impl TapeLayer {
+    fn out_side(&self) -> usize {
+        self.conv.out_side(self.side)
+    }
+
+    /// The layer's output for `frames` inputs `[frames, side^2, in]`.
+    fn forward(&self, input: &[f32], frames: usize) -> Vec<f32> {
+        let [cin, cout] = self.conv.channels;
+        let rows = frames * self.out_side().pow(2);
+        let mut out = vec![0.0; rows * cout];
+        if self.conv.is_pointwise() {
+            gemm_into(&mut out, input, &self.conv.weight, rows, cin, cout);
+        } else {
+            let columns = self.columns(input, frames);
+            gemm_into(
+                &mut out,
+                &columns,
+                &self.conv.weight,
+                rows,
+                self.conv.width(),
+                cout,
+            );
+        }
+        add_bias(&mut out, &self.conv.bias, self.relu);
+        out
+    }
+
+    /// The im2col matrix `[frames * out_side^2, width]` of `frames` inputs.
+    fn columns(&self, input: &[f32], frames: usize) -> Vec<f32> {
+        let per_input = self.side.pow(2) * self.conv.channels[0];
+        let per_frame = self.out_side().pow(2) * self.conv.width();
+        let mut columns = vec![0.0; frames * per_frame];
+        for (frame, block) in columns.chunks_exact_mut(per_frame).enumerate() {
+            self.conv
+                .im2col(&input[frame * per_input..][..per_input], self.side, block);
+        }
+        columns
+    }
+
+    /// From the gradient `grad_out [frames * out_side^2, out]` of the layer's output before
+    /// its ReLU: the weight gradient (`[out, width]`, the host layout), the bias gradient and,
+    /// when `input_grad`, the gradient of the input `[frames, side^2, in]`.
+    fn backward(
+        &self,
+        input: &[f32],
+        grad_out: &[f32],
+        frames: usize,
+        input_grad: bool,
+    ) -> (Vec<f32>, Vec<f32>, Option<Vec<f32>>) {
+        let [cin, cout] = self.conv.channels;
+        let width = self.conv.width();
+        let cells = self.out_side().pow(2);
+        let rows = frames * cells;
+        // Summed in f64: a bias gathers one term per output cell of every frame.
+        let mut bias = vec![0.0f64; cout];
+        for row in grad_out.chunks_exact(cout) {
+            for (b, &g) in bias.iter_mut().zip(row) {
+                *b += f64::from(g);
+            }
+        }
+        let bias: Vec<f32> = bias.into_iter().map(|b| b as f32).collect();
+        let columns_owned;
+        let columns = if self.conv.is_pointwise() {
+            input
+        } else {
+            columns_owned = self.columns(input, frames);
+            &columns_owned
+        };
+        // dW [out, width] = grad_out^T [out, rows] . columns [rows, width]
+        let mut weight = vec![0.0; cout * width];
+        gemm_strided(
+            &mut weight,
+            [cout, width, rows],
+            (grad_out, [cout, 1]),
+            (columns, [1, width]),
+        );
+        if !input_grad {
+            return (weight, bias, None);
+        }
+        // d columns [rows, width] = grad_out [rows, out] . W [out, width]
+        let mut grad_columns = vec![0.0; rows * width];
+        gemm_strided(
+            &mut grad_columns,
+            [rows, width, cout],
+            (grad_out, [1, cout]),
+            (&self.conv.weight, [1, width]),
+        );
+        if self.conv.is_pointwise() {
+            return (weight, bias, Some(grad_columns));
+        }
+        // col2im: each patch entry's gradient goes back to the input entry it was copied from.
+        let per_input = self.side.pow(2) * cin;
+        let per_frame = cells * width;
+        let mut grad_input = vec![0.0; frames * per_input];
+        for (frame, grad) in grad_input.chunks_exact_mut(per_input).enumerate() {
+            let block = &grad_columns[frame * per_frame..][..per_frame];
+            self.conv
+                .for_each_patch_run(self.side, |column, from, len| {
+                    for (g, c) in grad[from..][..len].iter_mut().zip(&block[column..][..len]) {
+                        *g += c;
+                    }
+                });
+        }
+        (weight, bias, Some(grad_input))
+    }
+}
+
+/// `dst [m, n] = lhs [m, k] . rhs [k, n]`, each operand given with its (column, row) strides,
+/// on the calling thread.
+fn gemm_strided(
+    dst: &mut [f32],
+    [m, n, k]: [usize; 3],
+    (lhs, [lhs_cs, lhs_rs]): (&[f32], [usize; 2]),
+    (rhs, [rhs_cs, rhs_rs]): (&[f32], [usize; 2]),
+) {
+    let last =
+        |[rows, cols]: [usize; 2], cs: usize, rs: usize| (rows - 1) * rs + (cols - 1) * cs + 1;
+    assert!(m > 0 && n > 0 && k > 0);
+    assert!(dst.len() >= m * n);
+    assert!(lhs.len() >= last([m, k], lhs_cs, lhs_rs));
+    assert!(rhs.len() >= last([k, n], rhs_cs, rhs_rs));
+    // SAFETY: the asserts bound the last entry each operand's strides reach.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            false,
+            lhs.as_ptr(),
+            lhs_cs as isize,
+            lhs_rs as isize,
+            rhs.as_ptr(),
+            rhs_cs as isize,
+            rhs_rs as isize,
+            0.0,
+            1.0,
+            false,
+            false,
+            false,
+            Parallelism::None,
+        );
+    }
+}
+
+impl TrunkTape {
+    /// Runs `layers` over `frames` (RGB u8, 64x64) and keeps what their backward pass needs;
+    /// [`Self::output`] is the last layer's output.
+    pub(crate) fn forward(layers: &[TrunkLayer], frames: &[&[u8]], device: &Device) -> Self {
+        let mut side = FRAME_PX;
+        let layers: Vec<TapeLayer> = layers
+            .iter()
+            .map(|layer| {
+                let conv = super::encoder::host_conv(layer.conv);
+                let tape = TapeLayer {
+                    side,
+                    relu: layer.relu,
+                    weight: layer.conv.weight.val(),
+                    bias: layer.conv.bias.as_ref().map(|b| b.val()),
+                    conv,
+                };
+                side = tape.out_side();
+                tape
+            })
+            .collect();
+        let pixel_values: [f32; 256] = std::array::from_fn(|b| super::pixel_input(b as u8));
+        let chunks: Vec<ChunkTape> = frames
+            .par_chunks(CHUNK_FRAMES)
+            .map(|chunk| {
+                let input: Vec<f32> = chunk
+                    .iter()
+                    .flat_map(|frame| frame.iter().map(|&b| pixel_values[b as usize]))
+                    .collect();
+                let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(layers.len());
+                for layer in &layers {
+                    let x = outputs.last().unwrap_or(&input);
+                    let y = layer.forward(x, chunk.len());
+                    outputs.push(y);
+                }
+                ChunkTape {
+                    frames: chunk.len(),
+                    input,
+                    outputs,
+                }
+            })
+            .collect();
+        let channels = layers.last().map_or(3, |layer| layer.conv.channels[1]);
+        let cells = side * side;
+        // burn's layout `[n, C, s, s]`: channel-major per frame.
+        let mut data = vec![0.0; frames.len() * channels * cells];
+        data.par_chunks_mut(CHUNK_FRAMES * channels * cells)
+            .zip(&chunks)
+            .for_each(|(out, chunk)| {
+                let last = chunk.outputs.last().unwrap_or(&chunk.input);
+                for (frame, out) in out.chunks_exact_mut(channels * cells).enumerate() {
+                    let y = &last[frame * cells * channels..][..cells * channels];
+                    for (cell, values) in y.chunks_exact(channels).enumerate() {
+                        for (c, &v) in values.iter().enumerate() {
+                            out[c * cells + cell] = v;
+                        }
+                    }
+                }
+            });
+        let output = Tensor::from_data(
+            TensorData::new(data, [frames.len(), channels, side, side]),
+            device,
+        )
+        .require_grad();
+        Self {
+            layers,
+            chunks,
+            output,
+        }
+    }
+
+    /// The trunk's output `[n, C, s, s]`, a graph leaf.
+    pub fn output(&self) -> Tensor<4> {
+        self.output.clone()
+    }
+
+    /// Carries the gradient `backward` left at [`Self::output`] back through the trunk and
+    /// writes its convolutions' parameter gradients into `grads` (nothing when the loss did
+    /// not depend on the output).
+    pub fn backward(self, grads: &mut Gradients) {
+        let Some(grad_output) = self.output.grad_remove(grads) else {
+            return;
+        };
+        let grad_output = super::to_vec(grad_output);
+        let Some(last) = self.layers.last() else {
+            return;
+        };
+        let channels = last.conv.channels[1];
+        let cells = last.out_side().pow(2);
+        let layers = &self.layers;
+        // Per chunk, per layer: (weight, bias) gradients.
+        let partials: Vec<Vec<(Vec<f32>, Vec<f32>)>> = self
+            .chunks
+            .par_iter()
+            .enumerate()
+            .map(|(index, chunk)| {
+                let first = index * CHUNK_FRAMES;
+                // To the host layout `[frames, cells, C]`.
+                let mut grad = vec![0.0; chunk.frames * cells * channels];
+                for (frame, rows) in grad.chunks_exact_mut(cells * channels).enumerate() {
+                    let from = &grad_output[(first + frame) * channels * cells..];
+                    for (cell, values) in rows.chunks_exact_mut(channels).enumerate() {
+                        for (c, v) in values.iter_mut().enumerate() {
+                            *v = from[c * cells + cell];
+                        }
+                    }
+                }
+                let mut per_layer = Vec::with_capacity(layers.len());
+                for (l, layer) in layers.iter().enumerate().rev() {
+                    if layer.relu {
+                        for (g, &y) in grad.iter_mut().zip(&chunk.outputs[l]) {
+                            if y <= 0.0 {
+                                *g = 0.0;
+                            }
+                        }
+                    }
+                    let input = if l == 0 {
+                        &chunk.input
+                    } else {
+                        &chunk.outputs[l - 1]
+                    };
+                    let (weight, bias, grad_input) =
+                        layer.backward(input, &grad, chunk.frames, l > 0);
+                    per_layer.push((weight, bias));
+                    if let Some(g) = grad_input {
+                        grad = g;
+                    }
+                }
+                per_layer.reverse();
+                per_layer
+            })
+            .collect();
+        for (l, layer) in self.layers.iter().enumerate() {
+            let mut weight = vec![0.0f32; layer.conv.weight.len()];
+            let mut bias = vec![0.0f32; layer.conv.bias.len()];
+            for partial in &partials {
+                let (w, b) = &partial[l];
+                weight.iter_mut().zip(w).for_each(|(sum, v)| *sum += v);
+                bias.iter_mut().zip(b).for_each(|(sum, v)| *sum += v);
+            }
+            let device = layer.weight.device().without_autodiff();
+            let dims = layer.weight.dims();
+            let weight = layer.conv.weight_to_burn_layout(&weight);
+            let weight = Tensor::from_data(TensorData::new(weight, dims), &device);
+            layer.weight.grad_replace(grads, weight);
+            if let Some(param) = &layer.bias {
+                let len = bias.len();
+                param.grad_replace(
+                    grads,
+                    Tensor::from_data(TensorData::new(bias, [len]), &device),
+                );
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use burn::module::{Module, ModuleVisitor, Param};
+    use burn::tensor::{Gradients, Tensor, TensorData};
+
+    use crate::envs::{EnvKind, FRAME_BYTES};
+    use crate::model::{Encoder, cpu_device, frames_to_tensor, to_vec};
+    use crate::train::{Method, Preset, TrainConfig};
+
+    /// Every parameter's gradient by path.
+    struct CollectGrads<'a> {
+        grads: &'a Gradients,
+        path: Vec<String>,
+        out: BTreeMap<String, Vec<f32>>,
+    }
+
+    impl ModuleVisitor for CollectGrads<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(grad) = param.val().grad(self.grads) {
+                self.out.insert(self.path.join("."), to_vec(grad));
+            }
+        }
+    }
+
+    fn grads_of(encoder: &Encoder, grads: &Gradients) -> BTreeMap<String, Vec<f32>> {
+        let mut collect = CollectGrads {
+            grads,
+            path: vec![],
+            out: BTreeMap::new(),
+        };
+        encoder.visit(&mut collect);
+        collect.out
+    }
+
+    /// The host trunk's forward pass and gradients are burn's, to 1e-5 of each gradient's
+    /// largest entry, for every shipped head: the point mass's Cartesian keypoints, the
+    /// reacher's polar keypoints with pairwise angles over 32x32 cells, and the paper's MLP
+    /// head. The loss weighs each latent entry differently, and the batch (19 frames) leaves a
+    /// short last chunk.
+    #[test]
+    fn trunk_gradients_match_burns() {
+        let device = cpu_device().autodiff();
+        for (env, preset) in [
+            (EnvKind::PointMass, Preset::Procl),
+            (EnvKind::Reacher, Preset::Procl),
+            (EnvKind::Reacher, Preset::Paper),
+        ] {
+            let config = TrainConfig::preset(preset, Method::Procl, env);
+            let mut environment = env.make();
+            let frames: Vec<[u8; FRAME_BYTES]> = (0..19)
+                .map(|seed| {
+                    environment.reset(seed).expect("reset");
+                    let mut frame = [0u8; FRAME_BYTES];
+                    environment.render(&mut frame);
+                    frame
+                })
+                .collect();
+            let frames: Vec<&[u8]> = frames.iter().map(|f| &f[..]).collect();
+            let encoder = config.model.init(5, &device).expect("model").encoder;
+            let du = encoder.latent_dim();
+            let weights: Vec<f32> = (0..frames.len() * du)
+                .map(|i| ((i * 7919) % 13) as f32 / 6.0 - 1.0)
+                .collect();
+            let weights =
+                Tensor::<2>::from_data(TensorData::new(weights, [frames.len(), du]), &device);
+            let loss = |h: Tensor<2>| (h.powi_scalar(2) * weights.clone()).sum();
+
+            let h_burn = encoder.forward(frames_to_tensor(frames.iter().copied(), &device));
+            let want_h = to_vec(h_burn.clone());
+            let want = grads_of(&encoder, &loss(h_burn).backward());
+
+            let (h_host, tape) = encoder.forward_training(&frames, &device);
+            let got_h = to_vec(h_host.clone());
+            let mut grads = loss(h_host).backward();
+            tape.expect("a CPU autodiff device runs the trunk on the host")
+                .backward(&mut grads);
+            let got = grads_of(&encoder, &grads);
+
+            for (a, b) in got_h.iter().zip(&want_h) {
+                assert!(
+                    (a - b).abs() <= 1e-5 * b.abs().max(1.0),
+                    "{env} {preset:?} h"
+                );
+            }
+            assert_eq!(
+                got.keys().collect::<Vec<_>>(),
+                want.keys().collect::<Vec<_>>(),
+                "{env} {preset:?}: the same parameters get gradients"
+            );
+            // Each parameter's gradient is held to the relative error 1e-5 in norm, and each
+            // entry to 1e-4 of the largest. The bias of the keypoint maps has an exact gradient
+            // of 0 (a softmax ignores a constant added to its logits), which both compute as
+            // rounding noise: it is held to the norm of the encoder's whole gradient instead.
+            let norm = |v: &[f32]| v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>().sqrt();
+            let overall = norm(&want.values().flatten().copied().collect::<Vec<_>>());
+            for (path, want) in &want {
+                let got = &got[path];
+                let scale = if path == "keypoints.features.bias" {
+                    overall
+                } else {
+                    norm(want)
+                };
+                assert!(scale > 0.0, "{env} {preset:?} {path}: no gradient");
+                let diff: Vec<f32> = got.iter().zip(want).map(|(a, b)| a - b).collect();
+                let relative = norm(&diff) / scale;
+                let largest = want.iter().fold(0f32, |m, x| m.max(x.abs()));
+                let worst = diff.iter().fold(0f32, |m, x| m.max(x.abs()));
+                assert!(
+                    relative <= 1e-5,
+                    "{env} {preset:?} {path}: host and burn differ by {relative} in norm"
+                );
+                assert!(
+                    worst <= 1e-4 * largest || path == "keypoints.features.bias",
+                    "{env} {preset:?} {path}: an entry differs by {worst} (largest {largest})"
+                );
+            }
+        }
+    }
+}
