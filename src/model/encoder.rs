@@ -8,7 +8,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::POLAR_FADE_RADIUS;
 use super::host_encoder::{HostConv, HostEncoder, HostHead, HostLinear};
-use super::trunk::{TrunkLayer, TrunkTape};
+use super::trunk::{Trunk, TrunkLayer, TrunkOutput, TrunkSoftArgmax, TrunkTape};
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 use crate::error::{Error, Result};
 
@@ -429,9 +429,9 @@ impl Encoder {
         self.head_from_trunk(x)
     }
 
-    /// The trunk's convolutions: conv1 and conv2 (each with its ReLU) and, with the keypoint
-    /// head, its feature maps.
-    fn trunk_layers(&self) -> Vec<TrunkLayer<'_>> {
+    /// The trunk run on the host in training: conv1 and conv2 (each with its ReLU) and, with
+    /// the keypoint head, its feature maps and their spatial soft-argmax.
+    fn trunk(&self) -> Trunk<'_> {
         let mut layers = vec![
             TrunkLayer {
                 conv: &self.conv1,
@@ -442,13 +442,32 @@ impl Encoder {
                 relu: true,
             },
         ];
-        if let Some(head) = &self.keypoints {
-            layers.push(TrunkLayer {
-                conv: &head.features,
-                relu: false,
-            });
+        let Some(head) = &self.keypoints else {
+            return Trunk {
+                layers,
+                soft_argmax: None,
+            };
+        };
+        layers.push(TrunkLayer {
+            conv: &head.features,
+            relu: false,
+        });
+        let side = layers
+            .iter()
+            .fold(FRAME_PX, |side, layer| host_conv(layer.conv).out_side(side));
+        let device = head.log_sharpness.val().device();
+        let grids = head
+            .expectation_grids(side, side, &device)
+            .into_iter()
+            .map(super::to_vec)
+            .collect();
+        Trunk {
+            layers,
+            soft_argmax: Some(TrunkSoftArgmax {
+                log_sharpness: head.log_sharpness.val(),
+                grids,
+            }),
         }
-        layers
     }
 
     /// `h` of `frames` (RGB u8, 64x64) for a training step. On the CPU with autodiff the
@@ -464,9 +483,17 @@ impl Encoder {
             let input = super::frames_to_tensor(frames.iter().copied(), device);
             return (self.forward(input), None);
         }
-        let tape = TrunkTape::forward(&self.trunk_layers(), frames, device);
-        let h = self.orient(self.head_from_trunk(tape.output()));
-        (h, Some(tape))
+        let tape = TrunkTape::forward(self.trunk(), frames, device);
+        let raw = match tape.output() {
+            TrunkOutput::Maps(x) => self.head_from_trunk(x),
+            // A trunk ends in the soft-argmax exactly when the head has keypoints.
+            TrunkOutput::Expectations(e) => self
+                .keypoints
+                .as_ref()
+                .expect("a soft-argmax trunk belongs to a keypoint head")
+                .latent_from_expectations(e),
+        };
+        (self.orient(raw), Some(tape))
     }
 
     /// The head's output before `Q`, from the trunk's output: conv2's (MLP head) or the
@@ -482,29 +509,16 @@ impl Encoder {
             .keypoints
             .as_ref()
             .expect("encoder has one head by construction");
-        let maps = x;
-        let [n, k, rows, cols] = maps.dims();
+        let [n, k, rows, cols] = x.dims();
         let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
-        let logits = maps.reshape([n, k, rows * cols]) * sharpness; // [n, K, cells]
+        let logits = x.reshape([n, k, rows * cols]) * sharpness; // [n, K, cells]
         let attention = softmax(logits, 2); // [n, K, cells]
-        // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
-        // angle and radius of the cells about the image centre.
-        let ([first, second], [grid_x, grid_y]) =
-            head.coordinate_grids(rows, cols, &attention.device());
-        let expected = |grid: Tensor<3>| (attention.clone() * grid).sum_dim(2); // [n, K, 1]
-        let coordinates = vec![expected(first), expected(second)];
-        // The angles between polar keypoints come from their expected (x, y).
-        let cartesian = head
-            .pairwise_angles
-            .then(|| (expected(grid_x), expected(grid_y)));
-        let features = coordinates.len() * k;
-        let keypoints = Tensor::cat(coordinates, 1).reshape([n, features]); // [n, 2K]
-        let keypoints = match cartesian {
-            // [n, 2K + K (K - 1) / 2]
-            Some((x, y)) => Tensor::cat(vec![keypoints, pairwise_angles(x, y)], 1),
-            None => keypoints,
-        };
-        head.latent_from_features(keypoints)
+        let expectations = head
+            .expectation_grids(rows, cols, &attention.device())
+            .into_iter()
+            .map(|grid| (attention.clone() * grid).sum_dim(2)) // [n, K, 1]
+            .collect();
+        head.latent_from_expectations(Tensor::cat(expectations, 2))
     }
 }
 
@@ -600,6 +614,36 @@ impl KeypointHead {
             None => [grid_x.clone(), grid_y.clone()],
         };
         (features, [grid_x, grid_y])
+    }
+
+    /// The grids `[1, 1, rows * cols]` whose expectations under each keypoint's attention
+    /// the head reads: the two coordinates of [`Self::coordinate_grids`], then, with pairwise
+    /// angles, the cells' `(x, y)`.
+    fn expectation_grids(&self, rows: usize, cols: usize, device: &Device) -> Vec<Tensor<3>> {
+        let ([first, second], [grid_x, grid_y]) = self.coordinate_grids(rows, cols, device);
+        let mut grids = vec![first, second];
+        if self.pairwise_angles {
+            grids.extend([grid_x, grid_y]);
+        }
+        grids
+    }
+
+    /// The expectations `[n, K, G]` of [`Self::expectation_grids`] -> `h`.
+    fn latent_from_expectations(&self, expectations: Tensor<3>) -> Tensor<2> {
+        let [n, k, _] = expectations.dims();
+        let grid = |g: usize| expectations.clone().narrow(2, g, 1); // [n, K, 1]
+        // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
+        // angle and radius of the cells about the image centre; all first coordinates, then
+        // all second ones.
+        let keypoints = Tensor::cat(vec![grid(0), grid(1)], 1).reshape([n, 2 * k]);
+        let features = if self.pairwise_angles {
+            // The angles between polar keypoints come from their expected (x, y).
+            // [n, 2K + K (K - 1) / 2]
+            Tensor::cat(vec![keypoints, pairwise_angles(grid(2), grid(3))], 1)
+        } else {
+            keypoints
+        };
+        self.latent_from_features(features)
     }
 
     /// The keypoint features `[n, F]` (the K angles, the K radii, then any extras) -> `h`.

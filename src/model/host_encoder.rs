@@ -124,9 +124,41 @@ impl HostConv {
     /// Writes the im2col matrix `[out_side^2, width]` of one input `[side * side, in]` into
     /// `columns`, whose padding entries must already be 0.
     pub fn im2col(&self, input: &[f32], side: usize, columns: &mut [f32]) {
-        self.for_each_patch_run(side, |column, from, len| {
-            copy_short(&mut columns[column..][..len], &input[from..][..len]);
-        });
+        let cin = self.channels[0];
+        let (k, s, p) = (self.kernel, self.stride, self.padding);
+        let o = self.out_side(side);
+        let width = self.width();
+        let run = k * cin;
+        // Output columns whose kernel row lies inside the image: the run is copied whole.
+        let inside = |ox: usize| ox * s >= p && ox * s + k <= side + p;
+        for oy in 0..o {
+            for ky in 0..k {
+                let iy = (oy * s + ky) as isize - p as isize;
+                if iy < 0 || iy >= side as isize {
+                    continue;
+                }
+                let row = &input[iy as usize * side * cin..][..side * cin];
+                for ox in 0..o {
+                    let column = (oy * o + ox) * width + ky * run;
+                    if inside(ox) {
+                        let from = (ox * s - p) * cin;
+                        copy_short(&mut columns[column..][..run], &row[from..][..run]);
+                        continue;
+                    }
+                    let left = (ox * s) as isize - p as isize;
+                    let x0 = (-left).max(0) as usize;
+                    let x1 = k.min((side as isize - left).max(0) as usize);
+                    if x0 < x1 {
+                        let from = (left + x0 as isize) as usize * cin;
+                        let len = (x1 - x0) * cin;
+                        copy_short(
+                            &mut columns[column + x0 * cin..][..len],
+                            &row[from..][..len],
+                        );
+                    }
+                }
+            }
+        }
     }
 
     /// `input` is `[side * side, in]` (pixels row-major, channels innermost); writes
@@ -161,22 +193,47 @@ impl HostConv {
     }
 }
 
-/// Copies a few floats (a patch row of 9-128) in 4-wide moves: too short for memcpy's call
-/// to pay.
+/// Copies a patch row (9-128 floats). A copy of a length known at compile time up to 128
+/// bytes is a few register moves, where memcpy's call and size dispatch cost more than the
+/// copy itself; the lengths the shipped layers copy (kernel rows of 2-4 pixels of 3, 16 or 32
+/// channels) are spelled out as such copies, with no loop the compiler could turn back into a
+/// memcpy call.
 pub(crate) fn copy_short(dst: &mut [f32], src: &[f32]) {
-    let mut dst_chunks = dst.chunks_exact_mut(4);
-    let mut src_chunks = src.chunks_exact(4);
-    for (d, s) in (&mut dst_chunks).zip(&mut src_chunks) {
-        let s: &[f32; 4] = s.try_into().expect("4-wide chunk");
-        let d: &mut [f32; 4] = d.try_into().expect("4-wide chunk");
+    #[inline(always)]
+    fn exact<const N: usize>(dst: &mut [f32], src: &[f32], at: usize) {
+        let (Ok(d), Ok(s)) = (
+            <&mut [f32; N]>::try_from(&mut dst[at..at + N]),
+            <&[f32; N]>::try_from(&src[at..at + N]),
+        ) else {
+            unreachable!("both ranges are N long");
+        };
         *d = *s;
     }
-    for (d, s) in dst_chunks
-        .into_remainder()
-        .iter_mut()
-        .zip(src_chunks.remainder())
-    {
-        *d = *s;
+    match src.len() {
+        6 => exact::<6>(dst, src, 0),
+        9 => exact::<9>(dst, src, 0),
+        12 => exact::<12>(dst, src, 0),
+        32 => exact::<32>(dst, src, 0),
+        48 => {
+            exact::<32>(dst, src, 0);
+            exact::<16>(dst, src, 32);
+        }
+        64 => {
+            exact::<32>(dst, src, 0);
+            exact::<32>(dst, src, 32);
+        }
+        96 => {
+            exact::<32>(dst, src, 0);
+            exact::<32>(dst, src, 32);
+            exact::<32>(dst, src, 64);
+        }
+        128 => {
+            exact::<32>(dst, src, 0);
+            exact::<32>(dst, src, 32);
+            exact::<32>(dst, src, 64);
+            exact::<32>(dst, src, 96);
+        }
+        _ => dst.copy_from_slice(src),
     }
 }
 

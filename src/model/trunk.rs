@@ -18,7 +18,7 @@ use gemm::Parallelism;
 use rayon::prelude::*;
 
 use super::host_encoder::{HostConv, add_bias, gemm_into};
-use crate::envs::FRAME_PX;
+use crate::envs::{FRAME_BYTES, FRAME_PX};
 
 /// Frames per chunk: one task of the thread pool, and the unit of the gradient sum's order.
 const CHUNK_FRAMES: usize = 8;
@@ -29,12 +29,45 @@ pub(crate) struct TrunkLayer<'a> {
     pub relu: bool,
 }
 
+/// The spatial soft-argmax after the last layer: each map's softmax attention
+/// `softmax(beta_k m)` over the cells, and its expectation of each grid.
+pub(crate) struct TrunkSoftArgmax {
+    /// `log beta`, `[K]` (a parameter).
+    pub log_sharpness: Tensor<1>,
+    /// The grids `[cells]` each.
+    pub grids: Vec<Vec<f32>>,
+}
+
+/// What runs on the host: the layers, then optionally the soft-argmax.
+pub(crate) struct Trunk<'a> {
+    pub layers: Vec<TrunkLayer<'a>>,
+    pub soft_argmax: Option<TrunkSoftArgmax>,
+}
+
 /// The trunk's forward pass over one batch of frames, kept for its backward pass.
 pub struct TrunkTape {
     layers: Vec<TapeLayer>,
+    soft_argmax: Option<SoftArgmaxTape>,
     chunks: Vec<ChunkTape>,
-    /// The trunk's output as burn sees it: a leaf `[n, C, s, s]` the head's graph starts from.
-    output: Tensor<4>,
+    /// The trunk's output as burn sees it, a leaf the head's graph starts from: the last
+    /// layer's output `[n, C, s, s]` or the soft-argmax's expectations `[n, K, G]`.
+    output: TrunkOutput,
+}
+
+/// The trunk's output (see [`TrunkTape::output`]).
+#[derive(Clone)]
+pub enum TrunkOutput {
+    /// The last layer's output `[n, C, s, s]`.
+    Maps(Tensor<4>),
+    /// The soft-argmax's expectations `[n, K, G]`: keypoint by keypoint, grid by grid.
+    Expectations(Tensor<3>),
+}
+
+struct SoftArgmaxTape {
+    log_sharpness: Tensor<1>,
+    /// `beta_k`.
+    sharpness: Vec<f32>,
+    grids: Vec<Vec<f32>>,
 }
 
 struct TapeLayer {
@@ -53,6 +86,87 @@ struct ChunkTape {
     input: Vec<f32>,
     /// Each layer's output `[frames, side^2, channels]`, after its ReLU.
     outputs: Vec<Vec<f32>>,
+    /// With the soft-argmax: the attention `[frames, K, cells]` and the expectations
+    /// `[frames, K, G]`.
+    attention: Vec<f32>,
+    expectations: Vec<f32>,
+}
+
+impl SoftArgmaxTape {
+    /// Attention and expectations of `frames` maps `[frames, cells, K]`. Sums are taken in
+    /// f64: over 1024 cells the f32 rounding of an expectation reaches the pairwise angles'
+    /// gradients.
+    fn forward(&self, maps: &[f32], frames: usize) -> (Vec<f32>, Vec<f32>) {
+        let k = self.sharpness.len();
+        let cells = maps.len() / (frames * k).max(1);
+        let g = self.grids.len();
+        let mut attention = vec![0.0; frames * k * cells];
+        let mut expectations = vec![0.0; frames * k * g];
+        for (frame, maps) in maps.chunks_exact(cells * k).enumerate() {
+            let attention = &mut attention[frame * k * cells..][..k * cells];
+            // Keypoint by keypoint: `[K, cells]`.
+            for (cell, values) in maps.chunks_exact(k).enumerate() {
+                for (key, &v) in values.iter().enumerate() {
+                    attention[key * cells + cell] = v;
+                }
+            }
+            for (key, a) in attention.chunks_exact_mut(cells).enumerate() {
+                let beta = self.sharpness[key];
+                let max = a.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(beta * v));
+                let mut total = 0.0f64;
+                for v in a.iter_mut() {
+                    *v = (beta * *v - max).exp();
+                    total += f64::from(*v);
+                }
+                let scale = (1.0 / total) as f32;
+                a.iter_mut().for_each(|v| *v *= scale);
+                let e = &mut expectations[(frame * k + key) * g..][..g];
+                for (e, grid) in e.iter_mut().zip(&self.grids) {
+                    let sum: f64 = a.iter().zip(grid).map(|(a, x)| f64::from(a * x)).sum();
+                    *e = sum as f32;
+                }
+            }
+        }
+        (attention, expectations)
+    }
+
+    /// From the gradient of the expectations `[frames, K, G]`: the gradient of the maps
+    /// `[frames, cells, K]` and of `log beta` (summed over the frames). With
+    /// `s_c = sum_g dE_g (grid_g[c] - E_g)`, `dm_c = beta a_c s_c` and
+    /// `d log beta = beta sum_c m_c a_c s_c`.
+    fn backward(&self, chunk: &ChunkTape, grad: &[f32]) -> (Vec<f32>, Vec<f64>) {
+        let k = self.sharpness.len();
+        let g = self.grids.len();
+        let maps = chunk.outputs.last().map_or(&[][..], |v| &v[..]);
+        let cells = maps.len() / (chunk.frames * k).max(1);
+        let mut grad_maps = vec![0.0; maps.len()];
+        let mut grad_log_sharpness = vec![0.0f64; k];
+        let mut s = vec![0.0f32; cells];
+        for frame in 0..chunk.frames {
+            let maps = &maps[frame * cells * k..][..cells * k];
+            let grad_maps = &mut grad_maps[frame * cells * k..][..cells * k];
+            for (key, &beta) in self.sharpness.iter().enumerate() {
+                let a = &chunk.attention[(frame * k + key) * cells..][..cells];
+                let e = &chunk.expectations[(frame * k + key) * g..][..g];
+                let de = &grad[(frame * k + key) * g..][..g];
+                let offset: f32 = de.iter().zip(e).map(|(d, e)| d * e).sum();
+                s.iter_mut().for_each(|v| *v = -offset);
+                for (grid, &d) in self.grids.iter().zip(de) {
+                    for (v, &x) in s.iter_mut().zip(grid) {
+                        *v += d * x;
+                    }
+                }
+                let mut grad_beta = 0.0f64;
+                for (c, (&a, &s)) in a.iter().zip(&s).enumerate() {
+                    let t = a * s;
+                    grad_maps[c * k + key] = beta * t;
+                    grad_beta += f64::from(maps[c * k + key] * t);
+                }
+                grad_log_sharpness[key] += f64::from(beta) * grad_beta;
+            }
+        }
+        (grad_maps, grad_log_sharpness)
+    }
 }
 
 impl TapeLayer {
@@ -68,28 +182,54 @@ impl TapeLayer {
         if self.conv.is_pointwise() {
             gemm_into(&mut out, input, &self.conv.weight, rows, cin, cout);
         } else {
-            let columns = self.columns(input, frames);
-            gemm_into(
-                &mut out,
-                &columns,
-                &self.conv.weight,
-                rows,
-                self.conv.width(),
-                cout,
-            );
+            SCRATCH.with_borrow_mut(|scratch| {
+                let columns = self.columns(&mut scratch.columns, input, frames);
+                gemm_into(
+                    &mut out,
+                    columns,
+                    &self.conv.weight,
+                    rows,
+                    self.conv.width(),
+                    cout,
+                );
+            });
         }
         add_bias(&mut out, &self.conv.bias, self.relu);
         out
     }
 
-    /// The im2col matrix `[frames * out_side^2, width]` of `frames` inputs.
-    fn columns(&self, input: &[f32], frames: usize) -> Vec<f32> {
-        let per_input = self.side.pow(2) * self.conv.channels[0];
-        let per_frame = self.out_side().pow(2) * self.conv.width();
-        let mut columns = vec![0.0; frames * per_frame];
+    /// The im2col matrix `[frames * out_side^2, width]` of `frames` inputs, in the buffer
+    /// `buffers` keeps for this layer's geometry.
+    fn columns<'a>(
+        &self,
+        buffers: &'a mut Vec<([usize; 5], Vec<f32>)>,
+        input: &[f32],
+        frames: usize,
+    ) -> &'a [f32] {
+        let conv = &self.conv;
+        let key = [
+            self.side,
+            conv.kernel,
+            conv.stride,
+            conv.padding,
+            conv.channels[0],
+        ];
+        let index = match buffers.iter().position(|(k, _)| *k == key) {
+            Some(index) => index,
+            None => {
+                buffers.push((key, Vec::new()));
+                buffers.len() - 1
+            }
+        };
+        let per_input = self.side.pow(2) * conv.channels[0];
+        let per_frame = self.out_side().pow(2) * conv.width();
+        let buffer = &mut buffers[index].1;
+        if buffer.len() < frames * per_frame {
+            buffer.resize(frames * per_frame, 0.0);
+        }
+        let columns = &mut buffer[..frames * per_frame];
         for (frame, block) in columns.chunks_exact_mut(per_frame).enumerate() {
-            self.conv
-                .im2col(&input[frame * per_input..][..per_input], self.side, block);
+            conv.im2col(&input[frame * per_input..][..per_input], self.side, block);
         }
         columns
     }
@@ -116,50 +256,73 @@ impl TapeLayer {
             }
         }
         let bias: Vec<f32> = bias.into_iter().map(|b| b as f32).collect();
-        let columns_owned;
-        let columns = if self.conv.is_pointwise() {
-            input
-        } else {
-            columns_owned = self.columns(input, frames);
-            &columns_owned
-        };
-        // dW [out, width] = grad_out^T [out, rows] . columns [rows, width]
-        let mut weight = vec![0.0; cout * width];
-        gemm_strided(
-            &mut weight,
-            [cout, width, rows],
-            (grad_out, [cout, 1]),
-            (columns, [1, width]),
-        );
-        if !input_grad {
-            return (weight, bias, None);
-        }
-        // d columns [rows, width] = grad_out [rows, out] . W [out, width]
-        let mut grad_columns = vec![0.0; rows * width];
-        gemm_strided(
-            &mut grad_columns,
-            [rows, width, cout],
-            (grad_out, [1, cout]),
-            (&self.conv.weight, [1, width]),
-        );
-        if self.conv.is_pointwise() {
-            return (weight, bias, Some(grad_columns));
-        }
-        // col2im: each patch entry's gradient goes back to the input entry it was copied from.
-        let per_input = self.side.pow(2) * cin;
-        let per_frame = cells * width;
-        let mut grad_input = vec![0.0; frames * per_input];
-        for (frame, grad) in grad_input.chunks_exact_mut(per_input).enumerate() {
-            let block = &grad_columns[frame * per_frame..][..per_frame];
-            self.conv
-                .for_each_patch_run(self.side, |column, from, len| {
-                    for (g, c) in grad[from..][..len].iter_mut().zip(&block[column..][..len]) {
-                        *g += c;
-                    }
-                });
-        }
-        (weight, bias, Some(grad_input))
+        SCRATCH.with_borrow_mut(|scratch| {
+            let Scratch {
+                columns,
+                grad_columns,
+            } = scratch;
+            let columns = if self.conv.is_pointwise() {
+                input
+            } else {
+                self.columns(columns, input, frames)
+            };
+            // dW [out, width] = grad_out^T [out, rows] . columns [rows, width]
+            let mut weight = vec![0.0; cout * width];
+            gemm_strided(
+                &mut weight,
+                [cout, width, rows],
+                (grad_out, [cout, 1]),
+                (columns, [1, width]),
+            );
+            if !input_grad {
+                return (weight, bias, None);
+            }
+            // d columns [rows, width] = grad_out [rows, out] . W [out, width], overwritten
+            // whole.
+            if grad_columns.len() < rows * width {
+                grad_columns.resize(rows * width, 0.0);
+            }
+            let grad_columns = &mut grad_columns[..rows * width];
+            gemm_strided(
+                grad_columns,
+                [rows, width, cout],
+                (grad_out, [1, cout]),
+                (&self.conv.weight, [1, width]),
+            );
+            if self.conv.is_pointwise() {
+                return (weight, bias, Some(grad_columns.to_vec()));
+            }
+            // col2im: each patch entry's gradient goes back to the input entry it was copied
+            // from.
+            let per_input = self.side.pow(2) * cin;
+            let per_frame = cells * width;
+            let mut grad_input = vec![0.0; frames * per_input];
+            for (frame, grad) in grad_input.chunks_exact_mut(per_input).enumerate() {
+                let block = &grad_columns[frame * per_frame..][..per_frame];
+                self.conv
+                    .for_each_patch_run(self.side, |column, from, len| {
+                        for (g, c) in grad[from..][..len].iter_mut().zip(&block[column..][..len]) {
+                            *g += c;
+                        }
+                    });
+            }
+            (weight, bias, Some(grad_input))
+        })
     }
+}
+
+/// Buffers a thread keeps between chunks.
+#[derive(Default)]
+struct Scratch {
+    /// im2col matrices by layer geometry: their padding entries stay 0 between uses, so they
+    /// are never zeroed again.
+    columns: Vec<([usize; 5], Vec<f32>)>,
+    /// The gradient of an im2col matrix, overwritten whole by its GEMM.
+    grad_columns: Vec<f32>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
 }
 
 /// `dst [m, n] = lhs [m, k] . rhs [k, n]`, each operand given with its (column, row) strides,
@@ -203,11 +366,11 @@ fn gemm_strided(
 }
 
 impl TrunkTape {
-    /// Runs `layers` over `frames` (RGB u8, 64x64) and keeps what their backward pass needs;
-    /// [`Self::output`] is the last layer's output.
-    pub(crate) fn forward(layers: &[TrunkLayer], frames: &[&[u8]], device: &Device) -> Self {
+    /// Runs `trunk` over `frames` (RGB u8, 64x64) and keeps what its backward pass needs.
+    pub(crate) fn forward(trunk: Trunk, frames: &[&[u8]], device: &Device) -> Self {
         let mut side = FRAME_PX;
-        let layers: Vec<TapeLayer> = layers
+        let layers: Vec<TapeLayer> = trunk
+            .layers
             .iter()
             .map(|layer| {
                 let conv = super::encoder::host_conv(layer.conv);
@@ -222,92 +385,133 @@ impl TrunkTape {
                 tape
             })
             .collect();
+        let soft_argmax = trunk.soft_argmax.map(|stage| SoftArgmaxTape {
+            sharpness: super::to_vec(stage.log_sharpness.clone().exp()),
+            log_sharpness: stage.log_sharpness,
+            grids: stage.grids,
+        });
         let pixel_values: [f32; 256] = std::array::from_fn(|b| super::pixel_input(b as u8));
         let chunks: Vec<ChunkTape> = frames
             .par_chunks(CHUNK_FRAMES)
             .map(|chunk| {
-                let input: Vec<f32> = chunk
-                    .iter()
-                    .flat_map(|frame| frame.iter().map(|&b| pixel_values[b as usize]))
-                    .collect();
+                let mut input = vec![0.0; chunk.len() * FRAME_BYTES];
+                for (x, frame) in input.chunks_exact_mut(FRAME_BYTES).zip(chunk) {
+                    for (x, &b) in x.iter_mut().zip(frame.iter()) {
+                        *x = pixel_values[b as usize];
+                    }
+                }
                 let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(layers.len());
                 for layer in &layers {
                     let x = outputs.last().unwrap_or(&input);
                     let y = layer.forward(x, chunk.len());
                     outputs.push(y);
                 }
+                let (attention, expectations) = match (&soft_argmax, outputs.last()) {
+                    (Some(stage), Some(maps)) => stage.forward(maps, chunk.len()),
+                    _ => (Vec::new(), Vec::new()),
+                };
                 ChunkTape {
                     frames: chunk.len(),
                     input,
                     outputs,
+                    attention,
+                    expectations,
                 }
             })
             .collect();
-        let channels = layers.last().map_or(3, |layer| layer.conv.channels[1]);
-        let cells = side * side;
-        // burn's layout `[n, C, s, s]`: channel-major per frame.
-        let mut data = vec![0.0; frames.len() * channels * cells];
-        data.par_chunks_mut(CHUNK_FRAMES * channels * cells)
-            .zip(&chunks)
-            .for_each(|(out, chunk)| {
-                let last = chunk.outputs.last().unwrap_or(&chunk.input);
-                for (frame, out) in out.chunks_exact_mut(channels * cells).enumerate() {
-                    let y = &last[frame * cells * channels..][..cells * channels];
-                    for (cell, values) in y.chunks_exact(channels).enumerate() {
-                        for (c, &v) in values.iter().enumerate() {
-                            out[c * cells + cell] = v;
+        let n = frames.len();
+        let output = if let Some(stage) = &soft_argmax {
+            let (k, g) = (stage.sharpness.len(), stage.grids.len());
+            let data: Vec<f32> = chunks
+                .iter()
+                .flat_map(|chunk| chunk.expectations.iter().copied())
+                .collect();
+            TrunkOutput::Expectations(
+                Tensor::from_data(TensorData::new(data, [n, k, g]), device).require_grad(),
+            )
+        } else {
+            let channels = layers.last().map_or(3, |layer| layer.conv.channels[1]);
+            let cells = side * side;
+            // burn's layout `[n, C, s, s]`: channel-major per frame.
+            let mut data = vec![0.0; n * channels * cells];
+            data.par_chunks_mut(CHUNK_FRAMES * channels * cells)
+                .zip(&chunks)
+                .for_each(|(out, chunk)| {
+                    let last = chunk.outputs.last().unwrap_or(&chunk.input);
+                    for (frame, out) in out.chunks_exact_mut(channels * cells).enumerate() {
+                        let y = &last[frame * cells * channels..][..cells * channels];
+                        for (cell, values) in y.chunks_exact(channels).enumerate() {
+                            for (c, &v) in values.iter().enumerate() {
+                                out[c * cells + cell] = v;
+                            }
                         }
                     }
-                }
-            });
-        let output = Tensor::from_data(
-            TensorData::new(data, [frames.len(), channels, side, side]),
-            device,
-        )
-        .require_grad();
+                });
+            TrunkOutput::Maps(
+                Tensor::from_data(TensorData::new(data, [n, channels, side, side]), device)
+                    .require_grad(),
+            )
+        };
         Self {
             layers,
+            soft_argmax,
             chunks,
             output,
         }
     }
 
-    /// The trunk's output `[n, C, s, s]`, a graph leaf.
-    pub fn output(&self) -> Tensor<4> {
+    /// The trunk's output, a graph leaf.
+    pub fn output(&self) -> TrunkOutput {
         self.output.clone()
     }
 
     /// Carries the gradient `backward` left at [`Self::output`] back through the trunk and
-    /// writes its convolutions' parameter gradients into `grads` (nothing when the loss did
-    /// not depend on the output).
+    /// writes its parameters' gradients into `grads` (nothing when the loss did not depend on
+    /// the output).
     pub fn backward(self, grads: &mut Gradients) {
-        let Some(grad_output) = self.output.grad_remove(grads) else {
+        let grad_output = match &self.output {
+            TrunkOutput::Maps(leaf) => leaf.grad_remove(grads).map(super::to_vec),
+            TrunkOutput::Expectations(leaf) => leaf.grad_remove(grads).map(super::to_vec),
+        };
+        let Some(grad_output) = grad_output else {
             return;
         };
-        let grad_output = super::to_vec(grad_output);
         let Some(last) = self.layers.last() else {
             return;
         };
         let channels = last.conv.channels[1];
         let cells = last.out_side().pow(2);
         let layers = &self.layers;
-        // Per chunk, per layer: (weight, bias) gradients.
-        let partials: Vec<Vec<(Vec<f32>, Vec<f32>)>> = self
+        let soft_argmax = &self.soft_argmax;
+        // Per chunk: per layer (weight, bias) gradients, and the gradient of `log beta`.
+        type Partial = (Vec<(Vec<f32>, Vec<f32>)>, Vec<f64>);
+        let partials: Vec<Partial> = self
             .chunks
             .par_iter()
             .enumerate()
             .map(|(index, chunk)| {
                 let first = index * CHUNK_FRAMES;
-                // To the host layout `[frames, cells, C]`.
-                let mut grad = vec![0.0; chunk.frames * cells * channels];
-                for (frame, rows) in grad.chunks_exact_mut(cells * channels).enumerate() {
-                    let from = &grad_output[(first + frame) * channels * cells..];
-                    for (cell, values) in rows.chunks_exact_mut(channels).enumerate() {
-                        for (c, v) in values.iter_mut().enumerate() {
-                            *v = from[c * cells + cell];
-                        }
+                // The gradient of the last layer's output, in the host layout
+                // `[frames, cells, C]`.
+                let (mut grad, grad_log_sharpness) = match soft_argmax {
+                    Some(stage) => {
+                        let per_frame = stage.sharpness.len() * stage.grids.len();
+                        let from = &grad_output[first * per_frame..][..chunk.frames * per_frame];
+                        stage.backward(chunk, from)
                     }
-                }
+                    None => {
+                        let mut grad = vec![0.0; chunk.frames * cells * channels];
+                        for (frame, rows) in grad.chunks_exact_mut(cells * channels).enumerate() {
+                            let from = &grad_output[(first + frame) * channels * cells..];
+                            for (cell, values) in rows.chunks_exact_mut(channels).enumerate() {
+                                for (c, v) in values.iter_mut().enumerate() {
+                                    *v = from[c * cells + cell];
+                                }
+                            }
+                        }
+                        (grad, Vec::new())
+                    }
+                };
                 let mut per_layer = Vec::with_capacity(layers.len());
                 for (l, layer) in layers.iter().enumerate().rev() {
                     if layer.relu {
@@ -330,13 +534,13 @@ impl TrunkTape {
                     }
                 }
                 per_layer.reverse();
-                per_layer
+                (per_layer, grad_log_sharpness)
             })
             .collect();
         for (l, layer) in self.layers.iter().enumerate() {
             let mut weight = vec![0.0f32; layer.conv.weight.len()];
             let mut bias = vec![0.0f32; layer.conv.bias.len()];
-            for partial in &partials {
+            for (partial, _) in &partials {
                 let (w, b) = &partial[l];
                 weight.iter_mut().zip(w).for_each(|(sum, v)| *sum += v);
                 bias.iter_mut().zip(b).for_each(|(sum, v)| *sum += v);
@@ -353,6 +557,18 @@ impl TrunkTape {
                     Tensor::from_data(TensorData::new(bias, [len]), &device),
                 );
             }
+        }
+        if let Some(stage) = &self.soft_argmax {
+            let k = stage.sharpness.len();
+            let mut sum = vec![0.0f64; k];
+            for (_, partial) in &partials {
+                sum.iter_mut().zip(partial).for_each(|(s, v)| *s += v);
+            }
+            let sum: Vec<f32> = sum.into_iter().map(|v| v as f32).collect();
+            let device = stage.log_sharpness.device().without_autodiff();
+            stage
+                .log_sharpness
+                .grad_replace(grads, Tensor::from_data(TensorData::new(sum, [k]), &device));
         }
     }
 }
