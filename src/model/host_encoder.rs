@@ -123,7 +123,20 @@ impl HostConv {
 
     /// Writes the im2col matrix `[out_side^2, width]` of one input `[side * side, in]` into
     /// `columns`, whose padding entries must already be 0.
+    #[inline(always)]
     pub fn im2col(&self, input: &[f32], side: usize, columns: &mut [f32]) {
+        // A kernel row's length known at compile time makes each interior copy a few moves.
+        match self.kernel * self.channels[0] {
+            12 => self.im2col_runs::<12>(input, side, columns),
+            48 => self.im2col_runs::<48>(input, side, columns),
+            128 => self.im2col_runs::<128>(input, side, columns),
+            _ => self.im2col_runs::<0>(input, side, columns),
+        }
+    }
+
+    /// [`Self::im2col`] with interior kernel rows `RUN` floats long (0: any length).
+    #[inline(always)]
+    fn im2col_runs<const RUN: usize>(&self, input: &[f32], side: usize, columns: &mut [f32]) {
         let cin = self.channels[0];
         let (k, s, p) = (self.kernel, self.stride, self.padding);
         let o = self.out_side(side);
@@ -142,7 +155,12 @@ impl HostConv {
                     let column = (oy * o + ox) * width + ky * run;
                     if inside(ox) {
                         let from = (ox * s - p) * cin;
-                        copy_short(&mut columns[column..][..run], &row[from..][..run]);
+                        let (dst, src) = (&mut columns[column..][..run], &row[from..][..run]);
+                        if RUN > 0 {
+                            copy_exact::<RUN>(dst, src);
+                        } else {
+                            copy_short(dst, src);
+                        }
                         continue;
                     }
                     let left = (ox * s) as isize - p as isize;
@@ -163,6 +181,7 @@ impl HostConv {
 
     /// `input` is `[side * side, in]` (pixels row-major, channels innermost); writes
     /// `[out_side^2, out]` into `out`, with a ReLU when `relu`.
+    #[inline(always)]
     fn forward(
         &self,
         input: &[f32],
@@ -193,46 +212,43 @@ impl HostConv {
     }
 }
 
-/// Copies a patch row (9-128 floats). A copy of a length known at compile time up to 128
-/// bytes is a few register moves, where memcpy's call and size dispatch cost more than the
-/// copy itself; the lengths the shipped layers copy (kernel rows of 2-4 pixels of 3, 16 or 32
-/// channels) are spelled out as such copies, with no loop the compiler could turn back into a
-/// memcpy call.
-pub(crate) fn copy_short(dst: &mut [f32], src: &[f32]) {
+/// Copies `N` floats: with `N` known at compile time, in blocks of 32 (128 bytes), each a few
+/// register moves. memcpy's call and size dispatch cost more than the copy at these lengths,
+/// and the compiler calls memcpy for a single copy over 128 bytes.
+#[inline(always)]
+fn copy_exact<const N: usize>(dst: &mut [f32], src: &[f32]) {
     #[inline(always)]
-    fn exact<const N: usize>(dst: &mut [f32], src: &[f32], at: usize) {
-        let (Ok(d), Ok(s)) = (
-            <&mut [f32; N]>::try_from(&mut dst[at..at + N]),
-            <&[f32; N]>::try_from(&src[at..at + N]),
-        ) else {
-            unreachable!("both ranges are N long");
-        };
-        *d = *s;
+    fn block<const M: usize>(dst: &mut [f32], src: &[f32], at: usize) {
+        if let (Ok(d), Ok(s)) = (
+            <&mut [f32; M]>::try_from(&mut dst[at..at + M]),
+            <&[f32; M]>::try_from(&src[at..at + M]),
+        ) {
+            *d = *s;
+        }
     }
+    let (dst, src) = (&mut dst[..N], &src[..N]);
+    let mut at = 0;
+    while at + 32 <= N {
+        block::<32>(dst, src, at);
+        at += 32;
+    }
+    if at + 16 <= N {
+        block::<16>(dst, src, at);
+        at += 16;
+    }
+    dst[at..].copy_from_slice(&src[at..]);
+}
+
+/// Copies a patch row of any length (the image's border rows, other layers' kernels).
+#[inline]
+pub(crate) fn copy_short(dst: &mut [f32], src: &[f32]) {
     match src.len() {
-        6 => exact::<6>(dst, src, 0),
-        9 => exact::<9>(dst, src, 0),
-        12 => exact::<12>(dst, src, 0),
-        32 => exact::<32>(dst, src, 0),
-        48 => {
-            exact::<32>(dst, src, 0);
-            exact::<16>(dst, src, 32);
-        }
-        64 => {
-            exact::<32>(dst, src, 0);
-            exact::<32>(dst, src, 32);
-        }
-        96 => {
-            exact::<32>(dst, src, 0);
-            exact::<32>(dst, src, 32);
-            exact::<32>(dst, src, 64);
-        }
-        128 => {
-            exact::<32>(dst, src, 0);
-            exact::<32>(dst, src, 32);
-            exact::<32>(dst, src, 64);
-            exact::<32>(dst, src, 96);
-        }
+        9 => copy_exact::<9>(dst, src),
+        12 => copy_exact::<12>(dst, src),
+        32 => copy_exact::<32>(dst, src),
+        48 => copy_exact::<48>(dst, src),
+        96 => copy_exact::<96>(dst, src),
+        128 => copy_exact::<128>(dst, src),
         _ => dst.copy_from_slice(src),
     }
 }
@@ -246,6 +262,7 @@ pub(crate) struct HostLinear {
 }
 
 impl HostLinear {
+    #[inline(always)]
     fn forward(&self, x: &[f32], out: &mut Vec<f32>) {
         out.clear();
         out.extend_from_slice(&self.bias);
@@ -289,6 +306,7 @@ pub(crate) fn gemm_into(out: &mut [f32], lhs: &[f32], rhs: &[f32], m: usize, k: 
     }
 }
 
+#[inline(always)]
 pub(crate) fn add_bias(out: &mut [f32], bias: &[f32], relu: bool) {
     for row in out.chunks_exact_mut(bias.len()) {
         for (v, b) in row.iter_mut().zip(bias) {
@@ -377,6 +395,15 @@ impl HostEncoder {
 
     /// `h` of one RGB u8 frame (64x64, row-major, channels innermost), written into `h`.
     pub fn encode(&mut self, frame: &[u8], h: &mut [f64]) {
+        // Compiled again for the widest vector unit the CPU has, picked at run time.
+        pulp::Arch::new().dispatch(
+            #[inline(always)]
+            || self.encode_here(frame, h),
+        )
+    }
+
+    #[inline(always)]
+    fn encode_here(&mut self, frame: &[u8], h: &mut [f64]) {
         let buffers = &mut self.buffers;
         buffers.input.resize(frame.len(), 0.0);
         for (x, &b) in buffers.input.iter_mut().zip(frame) {

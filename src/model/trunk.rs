@@ -96,6 +96,7 @@ impl SoftArgmaxTape {
     /// Attention and expectations of `frames` maps `[frames, cells, K]`. Sums are taken in
     /// f64: over 1024 cells the f32 rounding of an expectation reaches the pairwise angles'
     /// gradients.
+    #[inline(always)]
     fn forward(&self, maps: &[f32], frames: usize) -> (Vec<f32>, Vec<f32>) {
         let k = self.sharpness.len();
         let cells = maps.len() / (frames * k).max(1);
@@ -134,6 +135,7 @@ impl SoftArgmaxTape {
     /// `[frames, cells, K]` and of `log beta` (summed over the frames). With
     /// `s_c = sum_g dE_g (grid_g[c] - E_g)`, `dm_c = beta a_c s_c` and
     /// `d log beta = beta sum_c m_c a_c s_c`.
+    #[inline(always)]
     fn backward(&self, chunk: &ChunkTape, grad: &[f32]) -> (Vec<f32>, Vec<f64>) {
         let k = self.sharpness.len();
         let g = self.grids.len();
@@ -175,6 +177,7 @@ impl TapeLayer {
     }
 
     /// The layer's output for `frames` inputs `[frames, side^2, in]`.
+    #[inline(always)]
     fn forward(&self, input: &[f32], frames: usize) -> Vec<f32> {
         let [cin, cout] = self.conv.channels;
         let rows = frames * self.out_side().pow(2);
@@ -200,6 +203,7 @@ impl TapeLayer {
 
     /// The im2col matrix `[frames * out_side^2, width]` of `frames` inputs, in the buffer
     /// `buffers` keeps for this layer's geometry.
+    #[inline(always)]
     fn columns<'a>(
         &self,
         buffers: &'a mut Vec<([usize; 5], Vec<f32>)>,
@@ -237,6 +241,7 @@ impl TapeLayer {
     /// From the gradient `grad_out [frames * out_side^2, out]` of the layer's output before
     /// its ReLU: the weight gradient (`[out, width]`, the host layout), the bias gradient and,
     /// when `input_grad`, the gradient of the input `[frames, side^2, in]`.
+    #[inline(always)]
     fn backward(
         &self,
         input: &[f32],
@@ -365,6 +370,103 @@ fn gemm_strided(
     }
 }
 
+/// Per chunk: per layer (weight, bias) gradients, and the gradient of `log beta`.
+type Partial = (Vec<(Vec<f32>, Vec<f32>)>, Vec<f64>);
+
+/// One chunk's forward pass: the pixels as network input, each layer, the soft-argmax.
+#[inline(always)]
+fn forward_chunk(
+    layers: &[TapeLayer],
+    soft_argmax: Option<&SoftArgmaxTape>,
+    pixel_values: &[f32; 256],
+    chunk: &[&[u8]],
+) -> ChunkTape {
+    let mut input = vec![0.0; chunk.len() * FRAME_BYTES];
+    for (x, frame) in input.chunks_exact_mut(FRAME_BYTES).zip(chunk) {
+        for (x, &b) in x.iter_mut().zip(frame.iter()) {
+            *x = pixel_values[b as usize];
+        }
+    }
+    let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(layers.len());
+    for layer in layers {
+        let x = outputs.last().unwrap_or(&input);
+        let y = layer.forward(x, chunk.len());
+        outputs.push(y);
+    }
+    let (attention, expectations) = match (soft_argmax, outputs.last()) {
+        (Some(stage), Some(maps)) => stage.forward(maps, chunk.len()),
+        _ => (Vec::new(), Vec::new()),
+    };
+    ChunkTape {
+        frames: chunk.len(),
+        input,
+        outputs,
+        attention,
+        expectations,
+    }
+}
+
+/// One chunk's backward pass from the gradient of the trunk's output (`grad_output`, the whole
+/// batch's; the chunk's frames start at `first`): per layer the (weight, bias) gradients, and
+/// the gradient of `log beta`.
+#[inline(always)]
+fn backward_chunk(
+    layers: &[TapeLayer],
+    soft_argmax: Option<&SoftArgmaxTape>,
+    chunk: &ChunkTape,
+    grad_output: &[f32],
+    first: usize,
+) -> Partial {
+    let Some(last) = layers.last() else {
+        return (Vec::new(), Vec::new());
+    };
+    let channels = last.conv.channels[1];
+    let cells = last.out_side().pow(2);
+    // The gradient of the last layer's output, in the host layout
+    // `[frames, cells, C]`.
+    let (mut grad, grad_log_sharpness) = match soft_argmax {
+        Some(stage) => {
+            let per_frame = stage.sharpness.len() * stage.grids.len();
+            let from = &grad_output[first * per_frame..][..chunk.frames * per_frame];
+            stage.backward(chunk, from)
+        }
+        None => {
+            let mut grad = vec![0.0; chunk.frames * cells * channels];
+            for (frame, rows) in grad.chunks_exact_mut(cells * channels).enumerate() {
+                let from = &grad_output[(first + frame) * channels * cells..];
+                for (cell, values) in rows.chunks_exact_mut(channels).enumerate() {
+                    for (c, v) in values.iter_mut().enumerate() {
+                        *v = from[c * cells + cell];
+                    }
+                }
+            }
+            (grad, Vec::new())
+        }
+    };
+    let mut per_layer = Vec::with_capacity(layers.len());
+    for (l, layer) in layers.iter().enumerate().rev() {
+        if layer.relu {
+            for (g, &y) in grad.iter_mut().zip(&chunk.outputs[l]) {
+                if y <= 0.0 {
+                    *g = 0.0;
+                }
+            }
+        }
+        let input = if l == 0 {
+            &chunk.input
+        } else {
+            &chunk.outputs[l - 1]
+        };
+        let (weight, bias, grad_input) = layer.backward(input, &grad, chunk.frames, l > 0);
+        per_layer.push((weight, bias));
+        if let Some(g) = grad_input {
+            grad = g;
+        }
+    }
+    per_layer.reverse();
+    (per_layer, grad_log_sharpness)
+}
+
 impl TrunkTape {
     /// Runs `trunk` over `frames` (RGB u8, 64x64) and keeps what its backward pass needs.
     pub(crate) fn forward(trunk: Trunk, frames: &[&[u8]], device: &Device) -> Self {
@@ -394,29 +496,11 @@ impl TrunkTape {
         let chunks: Vec<ChunkTape> = frames
             .par_chunks(CHUNK_FRAMES)
             .map(|chunk| {
-                let mut input = vec![0.0; chunk.len() * FRAME_BYTES];
-                for (x, frame) in input.chunks_exact_mut(FRAME_BYTES).zip(chunk) {
-                    for (x, &b) in x.iter_mut().zip(frame.iter()) {
-                        *x = pixel_values[b as usize];
-                    }
-                }
-                let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(layers.len());
-                for layer in &layers {
-                    let x = outputs.last().unwrap_or(&input);
-                    let y = layer.forward(x, chunk.len());
-                    outputs.push(y);
-                }
-                let (attention, expectations) = match (&soft_argmax, outputs.last()) {
-                    (Some(stage), Some(maps)) => stage.forward(maps, chunk.len()),
-                    _ => (Vec::new(), Vec::new()),
-                };
-                ChunkTape {
-                    frames: chunk.len(),
-                    input,
-                    outputs,
-                    attention,
-                    expectations,
-                }
+                // Compiled again for the widest vector unit the CPU has, picked at run time.
+                pulp::Arch::new().dispatch(
+                    #[inline(always)]
+                    || forward_chunk(&layers, soft_argmax.as_ref(), &pixel_values, chunk),
+                )
             })
             .collect();
         let n = frames.len();
@@ -476,65 +560,19 @@ impl TrunkTape {
         let Some(grad_output) = grad_output else {
             return;
         };
-        let Some(last) = self.layers.last() else {
-            return;
-        };
-        let channels = last.conv.channels[1];
-        let cells = last.out_side().pow(2);
         let layers = &self.layers;
         let soft_argmax = &self.soft_argmax;
-        // Per chunk: per layer (weight, bias) gradients, and the gradient of `log beta`.
-        type Partial = (Vec<(Vec<f32>, Vec<f32>)>, Vec<f64>);
         let partials: Vec<Partial> = self
             .chunks
             .par_iter()
             .enumerate()
             .map(|(index, chunk)| {
-                let first = index * CHUNK_FRAMES;
-                // The gradient of the last layer's output, in the host layout
-                // `[frames, cells, C]`.
-                let (mut grad, grad_log_sharpness) = match soft_argmax {
-                    Some(stage) => {
-                        let per_frame = stage.sharpness.len() * stage.grids.len();
-                        let from = &grad_output[first * per_frame..][..chunk.frames * per_frame];
-                        stage.backward(chunk, from)
-                    }
-                    None => {
-                        let mut grad = vec![0.0; chunk.frames * cells * channels];
-                        for (frame, rows) in grad.chunks_exact_mut(cells * channels).enumerate() {
-                            let from = &grad_output[(first + frame) * channels * cells..];
-                            for (cell, values) in rows.chunks_exact_mut(channels).enumerate() {
-                                for (c, v) in values.iter_mut().enumerate() {
-                                    *v = from[c * cells + cell];
-                                }
-                            }
-                        }
-                        (grad, Vec::new())
-                    }
-                };
-                let mut per_layer = Vec::with_capacity(layers.len());
-                for (l, layer) in layers.iter().enumerate().rev() {
-                    if layer.relu {
-                        for (g, &y) in grad.iter_mut().zip(&chunk.outputs[l]) {
-                            if y <= 0.0 {
-                                *g = 0.0;
-                            }
-                        }
-                    }
-                    let input = if l == 0 {
-                        &chunk.input
-                    } else {
-                        &chunk.outputs[l - 1]
-                    };
-                    let (weight, bias, grad_input) =
-                        layer.backward(input, &grad, chunk.frames, l > 0);
-                    per_layer.push((weight, bias));
-                    if let Some(g) = grad_input {
-                        grad = g;
-                    }
-                }
-                per_layer.reverse();
-                (per_layer, grad_log_sharpness)
+                let from = index * CHUNK_FRAMES;
+                // Compiled again for the widest vector unit the CPU has, picked at run time.
+                pulp::Arch::new().dispatch(
+                    #[inline(always)]
+                    || backward_chunk(layers, soft_argmax.as_ref(), chunk, &grad_output, from),
+                )
             })
             .collect();
         for (l, layer) in self.layers.iter().enumerate() {
