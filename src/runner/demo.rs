@@ -34,7 +34,7 @@ pub struct DemoConfig {
 
 impl DemoConfig {
     /// The README's demo: 10k transitions, both methods trained with the default preset for 600
-    /// steps (about 5 minutes each on 2 cores; 500 steps already reached every goal).
+    /// steps (about 40 s each on 2 cores; 500 steps already reached every goal).
     pub fn full(out: impl Into<PathBuf>) -> Self {
         Self {
             out: out.into(),
