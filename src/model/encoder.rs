@@ -561,22 +561,8 @@ impl Encoder {
     }
 }
 
-pub(super) fn host_conv(conv: &Conv2d) -> HostConv {
-    let [cout, cin, kernel, _] = conv.weight.dims();
-    let padding = match conv.padding {
-        PaddingConfig2d::Explicit(top, ..) => top,
-        _ => 0,
-    };
-    HostConv::new(
-        &super::to_vec(conv.weight.val()),
-        conv.bias
-            .as_ref()
-            .map_or_else(|| vec![0.0; cout], |b| super::to_vec(b.val())),
-        [cin, cout],
-        kernel,
-        conv.stride[0],
-        padding,
-    )
+fn host_conv(conv: &Conv2d) -> HostConv {
+    HostConv::from_conv(conv)
 }
 
 fn host_linear(layer: &Linear) -> HostLinear {

@@ -3,6 +3,8 @@
 //! between calls, no autodiff graph and no tensor allocation. It computes what
 //! [`super::Encoder::forward`] computes, in another summation order.
 
+use burn::nn::PaddingConfig2d;
+use burn::nn::conv::Conv2d;
 use gemm::Parallelism;
 
 use super::POLAR_FADE_RADIUS;
@@ -23,6 +25,25 @@ pub(crate) struct HostConv {
 }
 
 impl HostConv {
+    /// A copy of a trained convolution's weights.
+    pub fn from_conv(conv: &Conv2d) -> Self {
+        let [cout, cin, kernel, _] = conv.weight.dims();
+        let padding = match conv.padding {
+            PaddingConfig2d::Explicit(top, ..) => top,
+            _ => 0,
+        };
+        Self::new(
+            &super::to_vec(conv.weight.val()),
+            conv.bias
+                .as_ref()
+                .map_or_else(|| vec![0.0; cout], |b| super::to_vec(b.val())),
+            [cin, cout],
+            kernel,
+            conv.stride[0],
+            padding,
+        )
+    }
+
     /// From burn's weight layout `[out, in, kh, kw]` (row-major) and the bias.
     pub fn new(
         weight: &[f32],

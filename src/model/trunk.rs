@@ -475,7 +475,7 @@ impl TrunkTape {
             .layers
             .iter()
             .map(|layer| {
-                let conv = super::encoder::host_conv(layer.conv);
+                let conv = HostConv::from_conv(layer.conv);
                 let tape = TapeLayer {
                     side,
                     relu: layer.relu,
