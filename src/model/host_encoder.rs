@@ -53,19 +53,7 @@ impl HostConv {
         stride: usize,
         padding: usize,
     ) -> Self {
-        let [cin, cout] = channels;
-        let k = kernel;
-        let mut reordered = vec![0.0; weight.len()];
-        for o in 0..cout {
-            for c in 0..cin {
-                for ky in 0..k {
-                    for kx in 0..k {
-                        reordered[((o * k + ky) * k + kx) * cin + c] =
-                            weight[((o * cin + c) * k + ky) * k + kx];
-                    }
-                }
-            }
-        }
+        let reordered = reorder_weight(weight, channels, kernel, true);
         Self {
             weight: reordered,
             bias,
@@ -79,20 +67,7 @@ impl HostConv {
     /// A weight (or its gradient) in the host layout `[out, kh, kw, in]` back in burn's
     /// `[out, in, kh, kw]`.
     pub fn weight_to_burn_layout(&self, weight: &[f32]) -> Vec<f32> {
-        let [cin, cout] = self.channels;
-        let k = self.kernel;
-        let mut burn = vec![0.0; weight.len()];
-        for o in 0..cout {
-            for c in 0..cin {
-                for ky in 0..k {
-                    for kx in 0..k {
-                        burn[((o * cin + c) * k + ky) * k + kx] =
-                            weight[((o * k + ky) * k + kx) * cin + c];
-                    }
-                }
-            }
-        }
-        burn
+        reorder_weight(weight, self.channels, self.kernel, false)
     }
 
     pub fn out_side(&self, side: usize) -> usize {
@@ -233,6 +208,28 @@ impl HostConv {
     }
 }
 
+/// A convolution weight from burn's layout `[out, in, kh, kw]` to the host's `[out, kh, kw,
+/// in]` (`to_host`), or back.
+fn reorder_weight(weight: &[f32], [cin, cout]: [usize; 2], k: usize, to_host: bool) -> Vec<f32> {
+    let mut reordered = vec![0.0; weight.len()];
+    for o in 0..cout {
+        for c in 0..cin {
+            for ky in 0..k {
+                for kx in 0..k {
+                    let burn = ((o * cin + c) * k + ky) * k + kx;
+                    let host = ((o * k + ky) * k + kx) * cin + c;
+                    if to_host {
+                        reordered[host] = weight[burn];
+                    } else {
+                        reordered[burn] = weight[host];
+                    }
+                }
+            }
+        }
+    }
+    reordered
+}
+
 /// Copies `N` floats: with `N` known at compile time, in blocks of 32 (128 bytes), each a few
 /// register moves. memcpy's call and size dispatch cost more than the copy at these lengths,
 /// and the compiler calls memcpy for a single copy over 128 bytes.
@@ -299,24 +296,39 @@ impl HostLinear {
 /// `out [m, n] = lhs [m, k] * rhs^T`, `rhs` row-major `[n, k]` (a weight `[out, in]`), on the
 /// calling thread.
 pub(crate) fn gemm_into(out: &mut [f32], lhs: &[f32], rhs: &[f32], m: usize, k: usize, n: usize) {
-    assert!(out.len() >= m * n && lhs.len() >= m * k && rhs.len() >= n * k);
-    // SAFETY: the asserts bound every index the strides below reach: dst `m x n` row-major,
-    // lhs `m x k` row-major, rhs read as `k x n` with column stride k (its row-major `n x k`).
+    gemm_strided(out, [m, n, k], (lhs, [1, k]), (rhs, [k, 1]));
+}
+
+/// `dst [m, n] = lhs [m, k] . rhs [k, n]`, each operand given with its (column, row) strides,
+/// on the calling thread.
+pub(crate) fn gemm_strided(
+    dst: &mut [f32],
+    [m, n, k]: [usize; 3],
+    (lhs, [lhs_cs, lhs_rs]): (&[f32], [usize; 2]),
+    (rhs, [rhs_cs, rhs_rs]): (&[f32], [usize; 2]),
+) {
+    let last =
+        |[rows, cols]: [usize; 2], cs: usize, rs: usize| (rows - 1) * rs + (cols - 1) * cs + 1;
+    assert!(m > 0 && n > 0 && k > 0);
+    assert!(dst.len() >= m * n);
+    assert!(lhs.len() >= last([m, k], lhs_cs, lhs_rs));
+    assert!(rhs.len() >= last([k, n], rhs_cs, rhs_rs));
+    // SAFETY: the asserts bound the last entry each operand's strides reach.
     unsafe {
         gemm::gemm(
             m,
             n,
             k,
-            out.as_mut_ptr(),
+            dst.as_mut_ptr(),
             1,
             n as isize,
             false,
             lhs.as_ptr(),
-            1,
-            k as isize,
+            lhs_cs as isize,
+            lhs_rs as isize,
             rhs.as_ptr(),
-            k as isize,
-            1,
+            rhs_cs as isize,
+            rhs_rs as isize,
             0.0,
             1.0,
             false,
@@ -557,9 +569,8 @@ impl HostEncoder {
 
 #[cfg(test)]
 mod tests {
-    use crate::envs::{EnvKind, FRAME_BYTES};
     use crate::model::{cpu_device, frames_to_tensor, to_vec};
-    use crate::train::{Method, Preset, TrainConfig};
+    use crate::train::{Method, TrainConfig};
 
     /// The host encoder gives the tensor encoder's `h` for every shipped head: the point mass's
     /// Cartesian keypoints, the reacher's polar keypoints with their pairwise angles over 32x32
@@ -567,21 +578,9 @@ mod tests {
     #[test]
     fn host_encoding_matches_the_tensor_encoder() {
         let device = cpu_device();
-        for (env, preset) in [
-            (EnvKind::PointMass, Preset::Procl),
-            (EnvKind::Reacher, Preset::Procl),
-            (EnvKind::Reacher, Preset::Paper),
-        ] {
+        for (env, preset) in crate::model::SHIPPED_HEADS {
             let config = TrainConfig::preset(preset, Method::Procl, env);
-            let mut environment = env.make();
-            let frames: Vec<[u8; FRAME_BYTES]> = (0..6)
-                .map(|seed| {
-                    environment.reset(seed).expect("reset");
-                    let mut frame = [0u8; FRAME_BYTES];
-                    environment.render(&mut frame);
-                    frame
-                })
-                .collect();
+            let frames = crate::model::start_frames(env, 6);
             let encoder = config.model.init(3, &device).expect("model").encoder;
             // A cut away from the default and a signed permutation, as a trained encoder has.
             let encoder = encoder.place_polar_cut(frames.iter().map(|f| &f[..]));

@@ -206,3 +206,27 @@ pub fn read_scalars(scalars: &[&Tensor<1>]) -> Vec<f64> {
 pub fn to_vec<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
     tensor.into_data().iter::<f32>().collect()
 }
+
+/// One preset for each shipped encoder head: the point mass's Cartesian keypoints, the
+/// reacher's polar keypoints with pairwise angles over 32x32 cells and a tanh layer, and the
+/// paper's MLP head.
+#[cfg(test)]
+pub(crate) const SHIPPED_HEADS: [(crate::envs::EnvKind, crate::train::Preset); 3] = [
+    (crate::envs::EnvKind::PointMass, crate::train::Preset::Procl),
+    (crate::envs::EnvKind::Reacher, crate::train::Preset::Procl),
+    (crate::envs::EnvKind::Reacher, crate::train::Preset::Paper),
+];
+
+/// The first frame of `n` episodes of `env` (seeds 0 to n - 1): test inputs for the encoders.
+#[cfg(test)]
+pub(crate) fn start_frames(env: crate::envs::EnvKind, n: u64) -> Vec<[u8; FRAME_BYTES]> {
+    let mut environment = env.make();
+    (0..n)
+        .map(|seed| {
+            environment.reset(seed).expect("reset");
+            let mut frame = [0u8; FRAME_BYTES];
+            environment.render(&mut frame);
+            frame
+        })
+        .collect()
+}

@@ -14,10 +14,9 @@
 
 use burn::nn::conv::Conv2d;
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
-use gemm::Parallelism;
 use rayon::prelude::*;
 
-use super::host_encoder::{HostConv, add_bias, gemm_into};
+use super::host_encoder::{HostConv, add_bias, gemm_into, gemm_strided};
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 
 /// Frames per chunk: one task of the thread pool, and the unit of the gradient sum's order.
@@ -330,46 +329,6 @@ thread_local! {
     static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
 }
 
-/// `dst [m, n] = lhs [m, k] . rhs [k, n]`, each operand given with its (column, row) strides,
-/// on the calling thread.
-fn gemm_strided(
-    dst: &mut [f32],
-    [m, n, k]: [usize; 3],
-    (lhs, [lhs_cs, lhs_rs]): (&[f32], [usize; 2]),
-    (rhs, [rhs_cs, rhs_rs]): (&[f32], [usize; 2]),
-) {
-    let last =
-        |[rows, cols]: [usize; 2], cs: usize, rs: usize| (rows - 1) * rs + (cols - 1) * cs + 1;
-    assert!(m > 0 && n > 0 && k > 0);
-    assert!(dst.len() >= m * n);
-    assert!(lhs.len() >= last([m, k], lhs_cs, lhs_rs));
-    assert!(rhs.len() >= last([k, n], rhs_cs, rhs_rs));
-    // SAFETY: the asserts bound the last entry each operand's strides reach.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            1,
-            n as isize,
-            false,
-            lhs.as_ptr(),
-            lhs_cs as isize,
-            lhs_rs as isize,
-            rhs.as_ptr(),
-            rhs_cs as isize,
-            rhs_rs as isize,
-            0.0,
-            1.0,
-            false,
-            false,
-            false,
-            Parallelism::None,
-        );
-    }
-}
-
 /// Per chunk: per layer (weight, bias) gradients, and the gradient of `log beta`.
 type Partial = (Vec<(Vec<f32>, Vec<f32>)>, Vec<f64>);
 
@@ -618,9 +577,8 @@ mod tests {
     use burn::module::{Module, ModuleVisitor, Param};
     use burn::tensor::{Gradients, Tensor, TensorData};
 
-    use crate::envs::{EnvKind, FRAME_BYTES};
     use crate::model::{Encoder, cpu_device, frames_to_tensor, to_vec};
-    use crate::train::{Method, Preset, TrainConfig};
+    use crate::train::{Method, TrainConfig};
 
     /// Every parameter's gradient by path.
     struct CollectGrads<'a> {
@@ -661,21 +619,9 @@ mod tests {
     #[test]
     fn trunk_gradients_match_burns() {
         let device = cpu_device().autodiff();
-        for (env, preset) in [
-            (EnvKind::PointMass, Preset::Procl),
-            (EnvKind::Reacher, Preset::Procl),
-            (EnvKind::Reacher, Preset::Paper),
-        ] {
+        for (env, preset) in crate::model::SHIPPED_HEADS {
             let config = TrainConfig::preset(preset, Method::Procl, env);
-            let mut environment = env.make();
-            let frames: Vec<[u8; FRAME_BYTES]> = (0..19)
-                .map(|seed| {
-                    environment.reset(seed).expect("reset");
-                    let mut frame = [0u8; FRAME_BYTES];
-                    environment.render(&mut frame);
-                    frame
-                })
-                .collect();
+            let frames = crate::model::start_frames(env, 19);
             let frames: Vec<&[u8]> = frames.iter().map(|f| &f[..]).collect();
             let encoder = config.model.init(5, &device).expect("model").encoder;
             let du = encoder.latent_dim();
