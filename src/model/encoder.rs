@@ -537,15 +537,12 @@ impl Encoder {
                 let features = host_conv(&head.features);
                 // The trunk's output side: 64 pixels through conv1 and conv2.
                 let side = conv2.out_side(conv1.out_side(FRAME_PX));
-                let (grids, [grid_x, grid_y]) = head.coordinate_grids(side, side, &device);
-                let grids = grids.map(super::to_vec);
+                let grids = head.expectation_grids(side, side, &device);
                 HostHead::Keypoints {
                     features,
                     sharpness: super::to_vec(head.log_sharpness.val().exp()),
-                    grids,
-                    pairwise: head
-                        .pairwise_angles
-                        .then(|| [super::to_vec(grid_x), super::to_vec(grid_y)]),
+                    grids: grids.into_iter().map(super::to_vec).collect(),
+                    pairwise: head.pairwise_angles,
                     hidden: head.hidden.as_ref().map(host_linear),
                     out: host_linear(&head.out),
                 }

@@ -208,6 +208,45 @@ impl HostConv {
     }
 }
 
+/// The spatial soft-argmax of one frame's keypoint maps `[cells, K]` (a convolution's
+/// output): each map's attention `softmax(beta_k m)` into `attention [K, cells]` and its
+/// expectation of each grid (`[cells]` each) into `expectations [K, G]`. Sums are taken in
+/// f64: over 1024 cells the f32 rounding of an expectation reaches the pairwise angles'
+/// gradients in training.
+#[inline(always)]
+pub(crate) fn soft_argmax(
+    maps: &[f32],
+    sharpness: &[f32],
+    grids: &[Vec<f32>],
+    attention: &mut [f32],
+    expectations: &mut [f32],
+) {
+    let k = sharpness.len();
+    let cells = attention.len() / k.max(1);
+    let g = grids.len();
+    // Keypoint by keypoint, so each softmax reads a row.
+    for (cell, values) in maps.chunks_exact(k).enumerate() {
+        for (key, &v) in values.iter().enumerate() {
+            attention[key * cells + cell] = v;
+        }
+    }
+    for (key, a) in attention.chunks_exact_mut(cells).enumerate() {
+        let beta = sharpness[key];
+        let max = a.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(beta * v));
+        let mut total = 0.0f64;
+        for v in a.iter_mut() {
+            *v = (beta * *v - max).exp();
+            total += f64::from(*v);
+        }
+        let scale = (1.0 / total) as f32;
+        a.iter_mut().for_each(|v| *v *= scale);
+        for (e, grid) in expectations[key * g..][..g].iter_mut().zip(grids) {
+            let sum: f64 = a.iter().zip(grid).map(|(a, x)| f64::from(a * x)).sum();
+            *e = sum as f32;
+        }
+    }
+}
+
 /// A convolution weight from burn's layout `[out, in, kh, kw]` to the host's `[out, kh, kw,
 /// in]` (`to_host`), or back.
 fn reorder_weight(weight: &[f32], [cin, cout]: [usize; 2], k: usize, to_host: bool) -> Vec<f32> {
@@ -360,17 +399,16 @@ pub(crate) enum HostHead {
         fc1: HostLinear,
         fc2: HostLinear,
     },
-    /// Spatial soft-argmax keypoints, each the attention's expectation of `grids` (per cell),
-    /// then the angles between keypoints (from the Cartesian grids) when `pairwise`, then an
-    /// optional tanh layer and the output layer.
+    /// Spatial soft-argmax keypoints, each the attention's expectations of `grids` (see
+    /// [`soft_argmax`]), then the angles between keypoints (from the last two grids, the
+    /// cells' `(x, y)`) when `pairwise`, then an optional tanh layer and the output layer.
     Keypoints {
         features: HostConv,
         sharpness: Vec<f32>,
-        /// The per-cell values whose expectations are the keypoint features: `(x, y)` or the
-        /// polar `(angle, radius)`, `[cells]` each.
-        grids: [Vec<f32>; 2],
-        /// The Cartesian `(x, y)` grids, for the pairwise angles.
-        pairwise: Option<[Vec<f32>; 2]>,
+        /// The per-cell values whose expectations are the keypoint features, `[cells]` each:
+        /// `(x, y)` or the polar `(angle, radius)`, then with `pairwise` the `(x, y)`.
+        grids: Vec<Vec<f32>>,
+        pairwise: bool,
         hidden: Option<HostLinear>,
         out: HostLinear,
     },
@@ -395,8 +433,8 @@ struct Buffers {
     /// im2col of each convolution, kept between calls (see [`HostConv::forward`]).
     columns: [Vec<f32>; 4],
     attention: Vec<f32>,
-    /// Per keypoint: the expectations of the two feature grids and of `(x, y)`.
-    expectations: Vec<[f32; 4]>,
+    /// `[K, G]`: each keypoint's expectations of the grids.
+    expectations: Vec<f32>,
     a: Vec<f32>,
     b: Vec<f32>,
     features: Vec<f32>,
@@ -416,7 +454,7 @@ impl HostEncoder {
             conv2,
             head,
             transform,
-            pixel_values: std::array::from_fn(|b| super::pixel_input(b as u8)),
+            pixel_values: super::pixel_table(),
             buffers: Buffers::default(),
         }
     }
@@ -497,52 +535,31 @@ impl HostEncoder {
                     false,
                 );
                 let k = features.channels[1];
-                let cells = side2 * side2;
-                // The maps keypoint by keypoint, `[K, cells]`, so each softmax reads a row.
-                let maps = &mut buffers.b;
-                maps.resize(k * cells, 0.0);
-                for (cell, values) in buffers.a.chunks_exact(k).enumerate() {
-                    for (key, &v) in values.iter().enumerate() {
-                        maps[key * cells + cell] = v;
-                    }
-                }
-                let expectations = &mut buffers.expectations;
-                expectations.resize(k, [0.0; 4]);
-                let attention = &mut buffers.attention;
-                attention.resize(cells, 0.0);
-                for (key, expected) in expectations.iter_mut().enumerate() {
-                    let beta = sharpness[key];
-                    let row = &maps[key * cells..][..cells];
-                    let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v * beta));
-                    for (a, &v) in attention.iter_mut().zip(row) {
-                        *a = (v * beta - max).exp();
-                    }
-                    let total: f32 = attention.iter().sum();
-                    let dot = |grid: &[f32]| -> f32 {
-                        attention.iter().zip(grid).map(|(a, g)| a * g).sum()
-                    };
-                    let mut sums = [dot(&grids[0]), dot(&grids[1]), 0.0, 0.0];
-                    if let Some([x, y]) = pairwise {
-                        sums[2] = dot(x);
-                        sums[3] = dot(y);
-                    }
-                    *expected = sums.map(|s| s / total);
-                }
+                let (cells, g) = (side2 * side2, grids.len());
+                buffers.attention.resize(k * cells, 0.0);
+                buffers.expectations.resize(k * g, 0.0);
+                soft_argmax(
+                    &buffers.a,
+                    sharpness,
+                    grids,
+                    &mut buffers.attention,
+                    &mut buffers.expectations,
+                );
+                let e = |key: usize, grid: usize| buffers.expectations[key * g + grid];
                 let feats = &mut buffers.features;
                 feats.clear();
-                feats.extend(expectations.iter().map(|e| e[0]));
-                feats.extend(expectations.iter().map(|e| e[1]));
-                if pairwise.is_some() {
-                    let fade = |e: &[f32; 4]| {
-                        let r2 = e[2] * e[2] + e[3] * e[3];
+                feats.extend((0..k).map(|key| e(key, 0)));
+                feats.extend((0..k).map(|key| e(key, 1)));
+                if *pairwise {
+                    let fade = |key: usize| {
+                        let r2 = e(key, 2).powi(2) + e(key, 3).powi(2);
                         r2 / (r2 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS)
                     };
                     for i in 0..k {
                         for j in i + 1..k {
-                            let (a, b) = (&expectations[i], &expectations[j]);
-                            let cross = a[2] * b[3] - a[3] * b[2];
-                            let dot = a[2] * b[2] + a[3] * b[3];
-                            feats.push(cross.atan2(dot + 1e-12) * fade(a) * fade(b));
+                            let cross = e(i, 2) * e(j, 3) - e(i, 3) * e(j, 2);
+                            let dot = e(i, 2) * e(j, 2) + e(i, 3) * e(j, 3);
+                            feats.push(cross.atan2(dot + 1e-12) * fade(i) * fade(j));
                         }
                     }
                 }

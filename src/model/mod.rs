@@ -54,6 +54,11 @@ pub(crate) fn pixel_input(byte: u8) -> f32 {
     byte as f32 / 255.0 - 0.5
 }
 
+/// [`pixel_input`] of every byte value, looked up rather than computed per pixel.
+pub(crate) fn pixel_table() -> [f32; 256] {
+    std::array::from_fn(|b| pixel_input(b as u8))
+}
+
 /// Converts RGB u8 frames to the network input `[n, 3, 64, 64]`, scaled to [-0.5, 0.5].
 /// This is the only place pixels are normalised.
 pub fn frames_to_tensor<'a>(

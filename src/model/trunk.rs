@@ -6,8 +6,8 @@
 //! layer costs one GEMM forward and two backward per chunk of frames (the im2col matrices are
 //! rebuilt from the kept activations rather than stored). The trunk's output enters burn's
 //! graph as a leaf; after `backward` its gradient is carried back through the layers here and
-//! the convolutions' parameter gradients are written into burn's [`Gradients`], where the
-//! optimiser finds them as it finds any other.
+//! its parameters' gradients are written into burn's [`Gradients`], where the optimiser finds
+//! them as it finds any other.
 //!
 //! Chunks have a fixed size and their weight gradients are summed in chunk order, so a step's
 //! gradients do not depend on the number of threads.
@@ -16,7 +16,7 @@ use burn::nn::conv::Conv2d;
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use rayon::prelude::*;
 
-use super::host_encoder::{HostConv, add_bias, gemm_into, gemm_strided};
+use super::host_encoder::{HostConv, add_bias, gemm_into, gemm_strided, soft_argmax};
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 
 /// Frames per chunk: one task of the thread pool, and the unit of the gradient sum's order.
@@ -92,9 +92,7 @@ struct ChunkTape {
 }
 
 impl SoftArgmaxTape {
-    /// Attention and expectations of `frames` maps `[frames, cells, K]`. Sums are taken in
-    /// f64: over 1024 cells the f32 rounding of an expectation reaches the pairwise angles'
-    /// gradients.
+    /// Attention and expectations of `frames` maps `[frames, cells, K]`.
     #[inline(always)]
     fn forward(&self, maps: &[f32], frames: usize) -> (Vec<f32>, Vec<f32>) {
         let k = self.sharpness.len();
@@ -103,29 +101,13 @@ impl SoftArgmaxTape {
         let mut attention = vec![0.0; frames * k * cells];
         let mut expectations = vec![0.0; frames * k * g];
         for (frame, maps) in maps.chunks_exact(cells * k).enumerate() {
-            let attention = &mut attention[frame * k * cells..][..k * cells];
-            // Keypoint by keypoint: `[K, cells]`.
-            for (cell, values) in maps.chunks_exact(k).enumerate() {
-                for (key, &v) in values.iter().enumerate() {
-                    attention[key * cells + cell] = v;
-                }
-            }
-            for (key, a) in attention.chunks_exact_mut(cells).enumerate() {
-                let beta = self.sharpness[key];
-                let max = a.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(beta * v));
-                let mut total = 0.0f64;
-                for v in a.iter_mut() {
-                    *v = (beta * *v - max).exp();
-                    total += f64::from(*v);
-                }
-                let scale = (1.0 / total) as f32;
-                a.iter_mut().for_each(|v| *v *= scale);
-                let e = &mut expectations[(frame * k + key) * g..][..g];
-                for (e, grid) in e.iter_mut().zip(&self.grids) {
-                    let sum: f64 = a.iter().zip(grid).map(|(a, x)| f64::from(a * x)).sum();
-                    *e = sum as f32;
-                }
-            }
+            soft_argmax(
+                maps,
+                &self.sharpness,
+                &self.grids,
+                &mut attention[frame * k * cells..][..k * cells],
+                &mut expectations[frame * k * g..][..k * g],
+            );
         }
         (attention, expectations)
     }
@@ -451,7 +433,7 @@ impl TrunkTape {
             log_sharpness: stage.log_sharpness,
             grids: stage.grids,
         });
-        let pixel_values: [f32; 256] = std::array::from_fn(|b| super::pixel_input(b as u8));
+        let pixel_values = super::pixel_table();
         let chunks: Vec<ChunkTape> = frames
             .par_chunks(CHUNK_FRAMES)
             .map(|chunk| {
