@@ -117,7 +117,8 @@ enum Command {
         /// Controller on the latent (default: the method's own): pd (procl and pc3 runs, the
         /// run's gains) | pid (nvae runs) | mpc (procl and pc3 runs: CEM through the learned
         /// dynamics, horizon 10; writes eval-mpc.json, reach-mpc.png, ...) | ilqr (procl and
-        /// pc3 runs: iLQR through the learned dynamics, PC3's controller; eval-ilqr.json, ...).
+        /// pc3 runs: iLQR through the learned dynamics, PC3's controller; eval-ilqr.json, ...) |
+        /// p (nvae runs: the PID's Kp alone, the NewtonianVAE paper's controller; eval-p.json).
         #[arg(long)]
         controller: Option<String>,
         /// MPC (CEM and iLQR) planning horizon in steps.
@@ -475,10 +476,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     horizon: mpc_horizon,
                     ..Default::default()
                 }),
+                "p" => procl::eval::Controller::Proportional,
                 other => anyhow::bail!(
                     "invalid value for `--controller`: `{other}` ({} runs: {own}{}, or leave it out)",
                     config.method.label(),
-                    if own == "pd" { ", mpc or ilqr" } else { "" }
+                    if own == "pd" {
+                        ", mpc or ilqr"
+                    } else {
+                        " or p"
+                    }
                 ),
             };
             let mut protocol = ReachConfig::for_env(config.simulated_env(&run)?, seed);

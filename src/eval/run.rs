@@ -13,8 +13,8 @@ use crate::baselines::ilqr::{IlqrMpc, IlqrPolicy};
 use crate::baselines::mpc::{CemMpc, MpcConfig, MpcPolicy};
 use crate::baselines::nvae::LatentPidPolicy;
 use crate::control::{
-    FeedbackLaw, LatentPdPolicy, LatentPolicy, OraclePdPolicy, PdController, Pid, Policy,
-    oracle_gains,
+    FeedbackLaw, LatentPdPolicy, LatentPolicy, OraclePdPolicy, PdController, Pid, PidController,
+    Policy, oracle_gains,
 };
 use crate::error::{Error, Result};
 use crate::model::{LatentEncoder, cpu_device};
@@ -44,6 +44,7 @@ impl EvalOutputs {
             Controller::Feedback => "",
             Controller::Mpc(_) => "-mpc",
             Controller::Ilqr(_) => "-ilqr",
+            Controller::Proportional => "-p",
         };
         Self {
             json: run.dir.join(format!("eval{suffix}.json")),
@@ -64,6 +65,9 @@ pub enum Controller {
     Mpc(MpcConfig),
     /// iLQR-MPC through `g`, PC3's own controller (ProCL and PC3).
     Ilqr(crate::baselines::ilqr::IlqrConfig),
+    /// P control on the NewtonianVAE's posterior mean, its paper's controller: the run's PID
+    /// with `Ki = Kd = 0`.
+    Proportional,
 }
 
 /// A latent policy of any feedback law and encoder, as the evaluations drive it.
@@ -171,10 +175,10 @@ pub fn evaluate_run(
 }
 
 /// The reach episodes of a planner's policy, and its control times.
-fn reach_with<L: FeedbackLaw>(
+fn reach_with<L: FeedbackLaw, E: LatentEncoder>(
     env: crate::envs::EnvKind,
     protocol: &ReachConfig,
-    mut policy: LatentPolicy<L>,
+    mut policy: LatentPolicy<L, E>,
     progress: &mut impl FnMut(usize),
 ) -> Result<(Vec<EpisodeRecord>, Vec<f64>)> {
     let records = evaluate_reach(env, protocol, &mut policy, true, progress)?;
@@ -210,6 +214,33 @@ pub fn evaluate_run_with(
             let policy = IlqrPolicy::new(model.encoder, device, law, dt);
             let (records, times) = reach_with(env, protocol, policy, &mut progress)?;
             (format!("{} + iLQR", config.method.label()), records, times)
+        }
+        (Controller::Proportional, TrainedModel::Nvae(model)) => {
+            let nvae = config.nvae.as_ref().ok_or_else(|| {
+                Error::config(
+                    "nvae",
+                    "a NewtonianVAE model needs its [nvae] configuration",
+                )
+            })?;
+            let dt = nvae.dt(config.control_dt_s());
+            let gains = PidController {
+                ki: 0.0,
+                kd: 0.0,
+                ..nvae.pid
+            };
+            let policy = LatentPidPolicy::new(model.encoder, device, Pid::new(gains, dt), dt);
+            let (records, times) = reach_with(env, protocol, policy, &mut progress)?;
+            (format!("{} + P", config.method.label()), records, times)
+        }
+        (Controller::Proportional, TrainedModel::Procl(_)) => {
+            return Err(Error::config(
+                "controller",
+                format!(
+                    "P control is the NewtonianVAE's; {} is a {} run, evaluated with its PD (leave out --controller)",
+                    run.dir.display(),
+                    config.method.label()
+                ),
+            ));
         }
         (Controller::Mpc(_) | Controller::Ilqr(_), TrainedModel::Nvae(_)) => {
             return Err(Error::config(

@@ -110,20 +110,6 @@ pub(crate) fn batch_actions(
     Tensor::from_data(TensorData::new(actions, [batch.len(), du]), device)
 }
 
-/// The frames of the samples `batch` as one network input `[3n, 3, 64, 64]` (in
-/// [`batch_frames`]'s order) and their actions `u_t` `[n, du]`.
-pub(crate) fn batch_tensors(
-    data: &Dataset,
-    batch: &[(usize, usize)],
-    device: &Device,
-) -> (Tensor<4>, Tensor<2>) {
-    let frames = batch_frames(data, batch);
-    (
-        frames_to_tensor(frames.into_iter(), device),
-        batch_actions(data, batch, device),
-    )
-}
-
 /// The encodings and random draws of training step `step` (see [`step_rng`]), and the
 /// encoder trunk's tape where it ran on the host: pass it the loss's gradients
 /// ([`TrunkTape::backward`]) before the optimiser step.

@@ -9,13 +9,13 @@ pub mod orientation;
 mod run_folder;
 
 pub use batches::loss_inputs;
-pub(crate) use batches::{batch_tensors, normal_tensor, sample_batch, step_rng};
+pub(crate) use batches::{normal_tensor, step_rng};
 pub(crate) use config::merge;
 pub use config::{
     ConfigBase, Method, Preset, TrainConfig, config_from_table, config_from_toml,
     read_config_table, training_budget,
 };
-pub use nvae::elbo_inputs;
+pub use nvae::{EpisodeSplit, PlateauRule};
 pub use run_folder::{DataRecord, RunPaths, TrainedModel};
 
 use std::io::Write;
@@ -63,6 +63,15 @@ pub(crate) trait Objective {
     /// Runs after the optimiser update of step `step` (0-based).
     fn after_update(&mut self, model: Self::Model, _step: u64) -> Result<Self::Model> {
         Ok(model)
+    }
+    /// Runs once before the first step: `resumed_at` is the checkpoint's step when resuming.
+    fn begin(&mut self, _resumed_at: Option<u64>) -> Result<()> {
+        Ok(())
+    }
+    /// After step `step` (0-based) and its update: true when the method's stopping rule ends
+    /// the run there.
+    fn stop_after(&mut self, _model: &Self::Model, _step: u64) -> Result<bool> {
+        Ok(false)
     }
 }
 
@@ -204,7 +213,7 @@ pub fn train_interruptible(
     match &config.nvae {
         Some(nvae) => {
             let model = nvae.init(config.seed, device)?;
-            let objective = NvaeObjective::new(config, nvae, data, device);
+            let objective = NvaeObjective::new(config, nvae, data, run, device)?;
             run_training(
                 objective,
                 model,
@@ -288,6 +297,7 @@ fn run_training<O: Objective>(
         let header = metrics_header(O::METRICS) + "\n";
         std::fs::write(run.metrics(), header).map_err(|e| Error::io(run.metrics(), e))?;
     }
+    objective.begin(resume.then_some(start))?;
     let mut metrics = std::fs::OpenOptions::new()
         .append(true)
         .open(run.metrics())
@@ -320,13 +330,21 @@ fn run_training<O: Objective>(
         .map_err(|e| Error::io(run.metrics(), e))?;
         let flow = progress(step + 1, &values);
         last = Some(values);
-        if (step + 1) % config.checkpoint_every == 0 || step + 1 == config.steps {
+        let plateaued = objective.stop_after(&model, step)?;
+        if (step + 1) % config.checkpoint_every == 0 || step + 1 == config.steps || plateaued {
             save_checkpoint(
                 &run.checkpoint(),
                 &model,
                 Some(&adam),
                 &CheckpointMeta { step: step + 1 },
             )?;
+        }
+        if plateaued {
+            return Ok(TrainSummary {
+                steps_done: step + 1,
+                last,
+                seconds: clock.elapsed().as_secs_f64(),
+            });
         }
         if flow.is_break() && step + 1 < config.steps {
             let has_checkpoint = resume || step + 1 >= config.checkpoint_every;

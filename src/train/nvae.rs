@@ -1,33 +1,190 @@
-//! The NewtonianVAE's part of the shared training loop: seeded batches and the ELBO.
+//! The NewtonianVAE's part of the shared training loop: seeded windows of consecutive frames,
+//! the sequence ELBO, the validation ELBO on held-out episodes and the plateau stopping rule.
 
-use burn::tensor::{Device, Tensor};
+use std::io::Write;
+use std::ops::Range;
 
-use super::{Objective, TrainConfig, batch_tensors, normal_tensor, sample_batch, step_rng};
-use crate::baselines::nvae::{ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, elbo_loss};
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::RngExt;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::{Objective, RunPaths, TrainConfig, normal_tensor, step_rng, truncate_metrics};
+use crate::baselines::nvae::{
+    ELBO_NAMES, ElboInputs, ElboTerms, NvaeConfig, NvaeModel, VALIDATION_NAMES, elbo_loss,
+};
 use crate::data::Dataset;
+use crate::error::{Error, Result};
 use crate::losses::StepValues;
-use crate::model::TrunkTape;
+use crate::model::{TrunkTape, frames_to_tensor};
 
-/// The frames, actions and reparameterisation noise of training step `step`, drawn from the
-/// step's own RNG stream (so `--resume` is exact), as ProCL's batches are.
-pub fn elbo_inputs(data: &Dataset, config: &TrainConfig, step: u64, device: &Device) -> ElboInputs {
-    let mut rng = step_rng(config.seed, step);
-    let n = config.batch_size;
-    let batch = sample_batch(data, &mut rng, n);
-    let (frames, u) = batch_tensors(data, &batch, device);
-    ElboInputs {
-        frames,
-        u,
-        noise: normal_tensor(&mut rng, 3 * n, data.action_dim(), device),
+/// Validation windows at most: enough for a stable mean, few enough to cost a few steps.
+const VALIDATION_WINDOWS: usize = 64;
+
+/// The dataset's episodes split into those trained on and those held out for validation
+/// (the last `validation_share` of them, at least one when the share is positive).
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeSplit {
+    pub train: Range<usize>,
+    pub validation: Range<usize>,
+}
+
+impl EpisodeSplit {
+    pub fn of(data: &Dataset, nvae: &NvaeConfig) -> Result<Self> {
+        let episodes = data.episodes();
+        if nvae.sequence_len > data.steps() + 1 {
+            return Err(Error::config(
+                "nvae.sequence_len",
+                format!(
+                    "{} frames do not fit in the dataset's episodes of {} frames",
+                    nvae.sequence_len,
+                    data.steps() + 1
+                ),
+            ));
+        }
+        let held = if nvae.validation_share > 0.0 {
+            ((nvae.validation_share * episodes as f64).round() as usize).max(1)
+        } else {
+            0
+        };
+        if held >= episodes {
+            return Err(Error::config(
+                "nvae.validation_share",
+                format!(
+                    "holding out {held} of the dataset's {episodes} episodes leaves none to train on; set it and nvae.plateau_patience to 0"
+                ),
+            ));
+        }
+        Ok(Self {
+            train: 0..episodes - held,
+            validation: episodes - held..episodes,
+        })
     }
 }
 
-/// Trains a [`NvaeModel`] by the annealed ELBO.
+/// `n` windows `(episode, first frame)` of `len` frames, from `episodes`.
+fn sample_windows(
+    data: &Dataset,
+    rng: &mut ChaCha8Rng,
+    episodes: &Range<usize>,
+    len: usize,
+    n: usize,
+) -> Vec<(usize, usize)> {
+    (0..n)
+        .map(|_| {
+            (
+                rng.random_range(episodes.clone()),
+                rng.random_range(0..data.steps() + 2 - len),
+            )
+        })
+        .collect()
+}
+
+/// The raw frames and tensors of a batch of windows; the posterior is the model's part.
+struct WindowBatch<'a> {
+    /// Every frame of every window, window-major.
+    frames: Vec<&'a [u8]>,
+    targets: Tensor<4>,
+    u: Tensor<2>,
+    posterior_noise: Tensor<2>,
+    prior_noise: Tensor<2>,
+    windows: usize,
+}
+
+impl<'a> WindowBatch<'a> {
+    fn new(
+        data: &'a Dataset,
+        windows: &[(usize, usize)],
+        len: usize,
+        rng: &mut ChaCha8Rng,
+        device: &Device,
+    ) -> Self {
+        let (w, du, terms) = (windows.len(), data.action_dim(), len - 2);
+        let frames: Vec<&[u8]> = windows
+            .iter()
+            .flat_map(|&(e, s)| (s..s + len).map(move |t| data.frame(e, t)))
+            .collect();
+        let targets: Vec<&[u8]> = frames
+            .chunks_exact(len)
+            .flat_map(|window| &window[2..])
+            .copied()
+            .collect();
+        let targets = frames_to_tensor(targets.into_iter(), device);
+        let u: Vec<f32> = windows
+            .iter()
+            .flat_map(|&(e, s)| {
+                (s + 1..s + len - 1).flat_map(move |t| (0..du).map(move |i| (e, t, i)))
+            })
+            .map(|(e, t, i)| data.actions[[e, t, i]])
+            .collect();
+        Self {
+            frames,
+            targets,
+            u: Tensor::from_data(TensorData::new(u, [w * terms, du]), device),
+            posterior_noise: normal_tensor(rng, w * len, du, device),
+            prior_noise: normal_tensor(rng, w * terms, du, device),
+            windows: w,
+        }
+    }
+
+    /// Encodes the frames and returns the ELBO's inputs with the trunk's tape.
+    fn inputs(self, model: &NvaeModel, device: &Device) -> (ElboInputs, Option<TrunkTape>) {
+        let (mean, log_std, tape) = model.encoder.posterior_training(&self.frames, device);
+        let inputs = ElboInputs {
+            mean,
+            log_std,
+            targets: self.targets,
+            u: self.u,
+            posterior_noise: self.posterior_noise,
+            prior_noise: self.prior_noise,
+            windows: self.windows,
+        };
+        (inputs, tape)
+    }
+}
+
+/// The stopping rule: a run has plateaued once its validation ELBO has not improved on the
+/// best so far by more than `tolerance` (relative) for `patience` validations in a row.
+#[derive(Debug, Clone)]
+pub struct PlateauRule {
+    patience: u64,
+    tolerance: f64,
+    best: Option<f64>,
+    stale: u64,
+}
+
+impl PlateauRule {
+    pub fn new(patience: u64, tolerance: f64) -> Self {
+        Self {
+            patience,
+            tolerance,
+            best: None,
+            stale: 0,
+        }
+    }
+
+    /// Records one validation loss (lower is better); true once the run has plateaued.
+    pub fn observe(&mut self, loss: f64) -> bool {
+        match self.best {
+            Some(best) if loss >= best - self.tolerance * best.abs() => self.stale += 1,
+            _ => {
+                self.best = Some(loss);
+                self.stale = 0;
+            }
+        }
+        self.patience > 0 && self.stale >= self.patience
+    }
+}
+
+/// Trains a [`NvaeModel`] by the annealed sequence ELBO.
 pub(crate) struct NvaeObjective<'a> {
     config: &'a TrainConfig,
     nvae: &'a NvaeConfig,
     data: &'a Dataset,
+    run: &'a RunPaths,
     device: &'a Device,
+    split: EpisodeSplit,
+    plateau: PlateauRule,
 }
 
 impl<'a> NvaeObjective<'a> {
@@ -35,14 +192,46 @@ impl<'a> NvaeObjective<'a> {
         config: &'a TrainConfig,
         nvae: &'a NvaeConfig,
         data: &'a Dataset,
+        run: &'a RunPaths,
         device: &'a Device,
-    ) -> Self {
-        Self {
+    ) -> Result<Self> {
+        Ok(Self {
             config,
             nvae,
             data,
+            run,
             device,
-        }
+            split: EpisodeSplit::of(data, nvae)?,
+            plateau: PlateauRule::new(nvae.plateau_patience, nvae.plateau_tolerance),
+        })
+    }
+
+    fn dt(&self) -> f64 {
+        self.nvae.dt(self.data.meta.control_dt_s)
+    }
+
+    /// The ELBO at `beta = 1` on the validation windows: the same windows and noise at every
+    /// validation (a stream of the seed that training never draws from).
+    fn validation_elbo(&self, model: &NvaeModel) -> ElboTerms {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed);
+        rng.set_stream(u64::MAX - 1);
+        let len = self.nvae.sequence_len;
+        let episodes = &self.split.validation;
+        let available = episodes.len() * (self.data.steps() + 2 - len);
+        let windows = sample_windows(
+            self.data,
+            &mut rng,
+            episodes,
+            len,
+            available.min(VALIDATION_WINDOWS),
+        );
+        let batch = WindowBatch::new(self.data, &windows, len, &mut rng, self.device);
+        let (inputs, _) = batch.inputs(model, self.device);
+        elbo_loss(model, self.nvae, inputs, 1.0, self.dt())
+    }
+
+    fn validation_header() -> String {
+        super::metrics_header(&VALIDATION_NAMES).replace(",seconds", "")
     }
 }
 
@@ -50,10 +239,122 @@ impl Objective for NvaeObjective<'_> {
     type Model = NvaeModel;
     const METRICS: &'static [&'static str] = &ELBO_NAMES;
 
+    fn begin(&mut self, resumed_at: Option<u64>) -> Result<()> {
+        if self.split.validation.is_empty() {
+            return Ok(());
+        }
+        let path = self.run.validation();
+        let header = Self::validation_header();
+        let Some(start) = resumed_at else {
+            return std::fs::write(&path, header + "\n").map_err(|e| Error::io(&path, e));
+        };
+        if !path.exists() {
+            std::fs::write(&path, format!("{header}\n")).map_err(|e| Error::io(&path, e))?;
+        }
+        truncate_metrics(&path, start, &header)?;
+        // The stopping rule picks up where the interrupted run left it.
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        for line in text.lines().skip(1) {
+            let mut fields = line.split(',').map(|f| f.parse::<f64>());
+            if let (Some(Ok(step)), Some(Ok(total))) = (fields.next(), fields.next())
+                && step as u64 > self.nvae.kl_anneal_end()
+            {
+                self.plateau.observe(total);
+            }
+        }
+        Ok(())
+    }
+
     fn loss(&mut self, model: &NvaeModel, step: u64) -> (Tensor<1>, StepValues, Option<TrunkTape>) {
-        let inputs = elbo_inputs(self.data, self.config, step, self.device);
-        let dt = self.nvae.dt(self.data.meta.control_dt_s);
-        let terms = elbo_loss(model, self.nvae, inputs, self.nvae.kl_weight(step), dt);
-        (terms.total.clone(), terms.values(), None)
+        let mut rng = step_rng(self.config.seed, step);
+        let len = self.nvae.sequence_len;
+        let windows = sample_windows(
+            self.data,
+            &mut rng,
+            &self.split.train,
+            len,
+            self.config.batch_size,
+        );
+        let batch = WindowBatch::new(self.data, &windows, len, &mut rng, self.device);
+        let (inputs, tape) = batch.inputs(model, self.device);
+        let terms = elbo_loss(
+            model,
+            self.nvae,
+            inputs,
+            self.nvae.kl_weight(step),
+            self.dt(),
+        );
+        (terms.total.clone(), terms.values(), tape)
+    }
+
+    fn stop_after(&mut self, model: &NvaeModel, step: u64) -> Result<bool> {
+        let done = step + 1;
+        if self.split.validation.is_empty() || !done.is_multiple_of(self.nvae.validate_every) {
+            return Ok(false);
+        }
+        let values = self.validation_elbo(model).values();
+        let path = self.run.validation();
+        let row: Vec<String> = values.values[..VALIDATION_NAMES.len()]
+            .iter()
+            .map(|x| format!("{x:.6}"))
+            .collect();
+        let mut file = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .map_err(|e| Error::io(&path, e))?;
+        writeln!(file, "{done},{}", row.join(",")).map_err(|e| Error::io(&path, e))?;
+        // The objective changes while beta anneals: only validations at beta = 1 count.
+        Ok(done > self.nvae.kl_anneal_end() && self.plateau.observe(values.total()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plateau_rule_stops_after_patience_validations_without_improvement() {
+        let mut rule = PlateauRule::new(2, 0.01);
+        // 100 -> 90 improves; 89.5 is within 1% of 90 (stale 1); 95 is worse (stale 2): stop.
+        assert!(!rule.observe(100.0));
+        assert!(!rule.observe(90.0));
+        assert!(!rule.observe(89.5));
+        assert!(rule.observe(95.0));
+        // An improvement past the tolerance resets the count.
+        let mut rule = PlateauRule::new(2, 0.01);
+        for loss in [100.0, 99.5, 98.0, 97.5] {
+            assert!(!rule.observe(loss), "{loss}");
+        }
+        assert!(rule.observe(97.2));
+        // Patience 0 never stops.
+        let mut rule = PlateauRule::new(0, 0.01);
+        assert!((0..10).all(|_| !rule.observe(1.0)));
+    }
+
+    #[test]
+    fn episodes_split_into_training_and_held_out_validation() {
+        let data = super::super::tiny_dataset(crate::envs::EnvKind::PointMass, 1, 200);
+        assert_eq!(data.episodes(), 10);
+        let mut nvae = NvaeConfig::for_action_dim(2);
+        nvae.validation_share = 0.1;
+        let split = EpisodeSplit::of(&data, &nvae).unwrap();
+        assert_eq!((split.train, split.validation), (0..9, 9..10));
+        // A small positive share still holds out one episode; 0 holds out none.
+        nvae.validation_share = 0.01;
+        assert_eq!(EpisodeSplit::of(&data, &nvae).unwrap().validation, 9..10);
+        nvae.validation_share = 0.0;
+        assert_eq!(EpisodeSplit::of(&data, &nvae).unwrap().train, 0..10);
+        // Windows longer than an episode (21 frames) are refused by name.
+        nvae.sequence_len = 22;
+        let err = EpisodeSplit::of(&data, &nvae).unwrap_err().to_string();
+        assert!(err.contains("nvae.sequence_len"), "{err}");
+        // Every window lies inside one training episode.
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for (e, s) in sample_windows(&data, &mut rng, &(0..9), 21, 50) {
+            assert!(e < 9 && s == 0);
+        }
+        for (e, s) in sample_windows(&data, &mut rng, &(0..9), 5, 200) {
+            assert!(e < 9 && s + 5 <= 21, "{e} {s}");
+        }
     }
 }

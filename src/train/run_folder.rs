@@ -28,6 +28,10 @@ impl RunPaths {
     pub fn metrics(&self) -> PathBuf {
         self.dir.join("metrics.csv")
     }
+    /// `validation.csv`: the validation ELBO of a NewtonianVAE run, one row per validation.
+    pub fn validation(&self) -> PathBuf {
+        self.dir.join("validation.csv")
+    }
     /// `data.json`: which dataset the run trains on ([`DataRecord`]).
     pub fn data_record(&self) -> PathBuf {
         self.dir.join("data.json")

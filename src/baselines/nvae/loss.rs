@@ -1,5 +1,5 @@
-//! The NewtonianVAE objective, one function per term, and the ELBO on one training sample
-//! `(i_{t-1}, i_t, u_t, i_{t+1})` with its per-term breakdown for logging.
+//! The NewtonianVAE objective, one function per term, and the ELBO on a batch of windows of
+//! consecutive frames with its per-term breakdown for logging.
 
 use burn::tensor::Tensor;
 
@@ -33,30 +33,39 @@ pub fn reconstruction_nll(mean: Tensor<4>, frames: Tensor<4>, recon_std: f64) ->
     (squared.sum_dim(1).mean() / (2.0 * recon_std * recon_std)).reshape([1])
 }
 
-/// One batch of training samples as the ELBO sees them.
+/// One batch of training windows as the ELBO sees them: `w` windows of `len` consecutive
+/// frames of one episode each, window-major.
 #[derive(Debug, Clone)]
 pub struct ElboInputs {
-    /// `[3n, 3, 64, 64]`: the frames `i_{t-1}` of every sample, then every `i_t`, then every
-    /// `i_{t+1}`.
-    pub frames: Tensor<4>,
-    /// `u_t`: `[n, du]`.
+    /// The posterior `q(x | i)` of every frame: mean and log std, `[w len, du]` each.
+    pub mean: Tensor<2>,
+    pub log_std: Tensor<2>,
+    /// The frames the prior's predictions are scored on, frames `2..len` of every window:
+    /// `[w (len - 2), 3, 64, 64]`.
+    pub targets: Tensor<4>,
+    /// `u_t` for `t = 1..len - 1` of every window (`u_t` moves frame `t` to `t + 1`):
+    /// `[w (len - 2), du]`.
     pub u: Tensor<2>,
-    /// Standard normal draws for the reparameterised samples of `x`, in the frames' order:
-    /// `[3n, du]`.
-    pub noise: Tensor<2>,
+    /// Standard normal draws for the posterior samples of `x`, `[w len, du]`, and for the
+    /// prior's samples of `x_{t+1}`, `[w (len - 2), du]`.
+    pub posterior_noise: Tensor<2>,
+    pub prior_noise: Tensor<2>,
+    /// Number of windows `w`.
+    pub windows: usize,
 }
 
-/// The ELBO's terms on one batch (each a per-sample mean) and the weighted total to minimise.
+/// The ELBO's terms on one batch (each a mean per ELBO term, i.e. per predicted frame) and
+/// the weighted total to minimise.
 #[derive(Debug, Clone)]
 pub struct ElboTerms {
-    /// Reconstruction NLL of the three frames, summed.
+    /// Reconstruction NLL of frame `t + 1` decoded from the prior's sample of `x_{t+1}`.
     pub recon: Tensor<1>,
     /// `KL(q(x_{t+1} | i_{t+1}) || p(x_{t+1} | x_t, v_t, u_t))`, unweighted.
     pub kl: Tensor<1>,
-    /// `KL(q(x_t | i_t) || N(0, I))`, unweighted.
+    /// `KL(q(x | i) || N(0, I))` over every frame, unweighted.
     pub kl_standard: Tensor<1>,
-    /// `recon + beta kl + kl_standard_weight kl_standard` (the negative ELBO, up to the
-    /// decoder's constant, when both weights are 1).
+    /// `recon + beta kl + kl_standard_weight kl_standard` (the negative ELBO per term, up to
+    /// the decoder's constant, when both weights are 1).
     pub total: Tensor<1>,
     /// The transition KL's weight this step.
     pub beta: f64,
@@ -64,6 +73,9 @@ pub struct ElboTerms {
 
 /// Names of the logged NVAE terms (metrics.csv columns), in [`ElboTerms::values`] order.
 pub const ELBO_NAMES: [&str; 5] = ["total", "recon", "kl", "kl_std", "beta"];
+
+/// Names of validation.csv's terms: the ELBO's at `beta = 1`.
+pub const VALIDATION_NAMES: [&str; 4] = ["total", "recon", "kl", "kl_std"];
 
 impl ElboTerms {
     /// Reads every term back (one device sync).
@@ -78,10 +90,12 @@ impl ElboTerms {
     }
 }
 
-/// The NewtonianVAE's training objective on one batch: encode the three frames, draw
-/// `x ~ q(x | i)` by reparameterisation, `v_t = (x_t - x_{t-1}) / dt`, decode every `x`, and
-/// score `q(x_{t+1} | i_{t+1})` against the transition prior from `(x_t, v_t, u_t)` with the
-/// learned `sigma_p`; `beta` weights that KL (annealing).
+/// The NewtonianVAE's ELBO (its paper's Eq. 11) on a batch of windows: draw every
+/// `x ~ q(x | i)` by reparameterisation, take `v_t = (x_t - x_{t-1}) / dt`, predict
+/// `p(x_{t+1} | x_t, v_t, u_t)` with the learned `sigma_p`, and score frame `t + 1` decoded
+/// from a sample of that prediction, plus `q(x_{t+1} | i_{t+1})` against it (`beta` weights
+/// that KL). Decoding the prediction, not the posterior, is what ties the latent to the
+/// action through `C`.
 pub fn elbo_loss(
     model: &NvaeModel,
     config: &NvaeConfig,
@@ -89,33 +103,40 @@ pub fn elbo_loss(
     beta: f64,
     dt: f64,
 ) -> ElboTerms {
-    let ElboInputs { frames, u, noise } = inputs;
-    let n = u.dims()[0];
-    let (mean, log_std) = model.encoder.posterior(frames.clone()); // [3n, du] each
-    let x = mean.clone() + log_std.clone().exp() * noise; // [3n, du]
-    // Sum over the three frames of each sample = 3 x the mean over all 3n frames.
-    let recon =
-        reconstruction_nll(model.decoder.forward(x.clone()), frames, config.recon_std) * 3.0;
-
-    let part = |t: Tensor<2>, k: usize| t.narrow(0, k * n, n);
-    let (x_prev, x_now) = (part(x.clone(), 0), part(x, 1));
+    let ElboInputs {
+        mean,
+        log_std,
+        targets,
+        u,
+        posterior_noise,
+        prior_noise,
+        windows,
+    } = inputs;
+    let [rows, du] = mean.dims();
+    let len = rows / windows;
+    let terms = len - 2;
+    let x = (mean.clone() + log_std.clone().exp() * posterior_noise).reshape([windows, len, du]);
+    // Frames `start..start + terms` of every window, flattened to `[w terms, du]`.
+    let frames_from =
+        |t: Tensor<3>, start: usize| t.narrow(1, start, terms).reshape([windows * terms, du]);
+    let x_prev = frames_from(x.clone(), 0);
+    let x_now = frames_from(x, 1);
     let v_now = (x_now.clone() - x_prev) / dt;
     let (prior_mean, _) = model.transition.forward(x_now, v_now, u, dt);
-    let du = prior_mean.dims()[1];
     let prior_log_std = model.transition.log_std.val().reshape([1, du]);
+    let x_next = prior_mean.clone() + prior_log_std.clone().exp() * prior_noise;
+    let recon = reconstruction_nll(model.decoder.forward(x_next), targets, config.recon_std);
     let kl = gaussian_kl(
-        part(mean.clone(), 2),
-        part(log_std.clone(), 2),
+        frames_from(mean.clone().reshape([windows, len, du]), 2),
+        frames_from(log_std.clone().reshape([windows, len, du]), 2),
         prior_mean,
         prior_log_std,
     );
-
-    let (mean_now, log_std_now) = (part(mean, 1), part(log_std, 1));
     let kl_standard = gaussian_kl(
-        mean_now.clone(),
-        log_std_now.clone(),
-        mean_now.zeros_like(),
-        log_std_now.zeros_like(),
+        mean.clone(),
+        log_std.clone(),
+        mean.zeros_like(),
+        log_std.zeros_like(),
     );
     let total = recon.clone() + kl.clone() * beta + kl_standard.clone() * config.kl_standard_weight;
     ElboTerms {
@@ -204,5 +225,73 @@ mod tests {
         let got = scalar(reconstruction_nll(mean, target.clone(), 1.0));
         assert!((got - 0.075).abs() < 1e-6, "{got}");
         assert_eq!(scalar(reconstruction_nll(target.clone(), target, 0.1)), 0.0);
+    }
+
+    #[test]
+    fn sequence_elbo_predicts_each_frame_from_the_two_before_it_and_the_action() {
+        let device = cpu_device();
+        let config = super::super::model::tests::tiny();
+        let model = config.init(1, &device).unwrap();
+        let dt = 0.1;
+        // One window of 4 frames with distinct posterior means; zero noise makes every sample
+        // its mean, so the terms can be rebuilt from the transition by hand.
+        let mean = t2(&[0.0, 0.1, 0.2, 0.4, 0.5, 0.3, 0.9, -0.2], 4, 2, &device);
+        let log_std = t2(&[0.5f32.ln(); 8], 4, 2, &device);
+        let targets = Tensor::<4>::ones([2, 3, 64, 64], &device) * 0.25;
+        let u = t2(&[1.0, -1.0, 0.5, 0.0], 2, 2, &device);
+        let inputs = ElboInputs {
+            mean: mean.clone(),
+            log_std: log_std.clone(),
+            targets: targets.clone(),
+            u: u.clone(),
+            posterior_noise: mean.zeros_like(),
+            prior_noise: u.zeros_like(),
+            windows: 1,
+        };
+        let terms = elbo_loss(&model, &config, inputs.clone(), 0.3, dt);
+        // Term t = 1 predicts frame 2 from frames 0, 1 and u_1; t = 2 frame 3 from 1, 2, u_2.
+        let rows = |k: usize| mean.clone().narrow(0, k, 2);
+        let v = (rows(1) - rows(0)) / dt;
+        let (prior_mean, _) = model.transition.forward(rows(1), v, u.clone(), dt);
+        let prior_log_std = model.transition.log_std.val().reshape([1, 2]);
+        let kl = scalar(gaussian_kl(
+            rows(2),
+            log_std.clone().narrow(0, 2, 2),
+            prior_mean.clone(),
+            prior_log_std,
+        ));
+        let recon = scalar(reconstruction_nll(
+            model.decoder.forward(prior_mean),
+            targets,
+            config.recon_std,
+        ));
+        let kl_std = scalar(gaussian_kl(
+            mean.clone(),
+            log_std.clone(),
+            mean.zeros_like(),
+            log_std.zeros_like(),
+        ));
+        // Each of 4 posteriors N(m, 0.5^2) against N(0, 1): ln 2 + (0.25 + |m|^2) / 2 - 1/2 per
+        // dimension; the means' squares sum to 1.4, so the mean over frames is
+        // 2 (ln 2 - 0.375) + 1.4 / 8 = 0.811294.
+        assert!((kl_std - 0.811_294).abs() < 1e-5, "{kl_std}");
+        for (got, want) in [
+            (scalar(terms.kl.clone()), kl),
+            (scalar(terms.recon.clone()), recon),
+            (scalar(terms.kl_standard.clone()), kl_std),
+            (scalar(terms.total.clone()), recon + 0.3 * kl + kl_std),
+        ] {
+            assert!(
+                (got - want).abs() < 1e-4 * want.abs().max(1.0),
+                "{got} vs {want}"
+            );
+        }
+        // The prediction, and with it the reconstruction, depends on the action.
+        let pushed = ElboInputs {
+            u: u * -1.0,
+            ..inputs
+        };
+        let other = scalar(elbo_loss(&model, &config, pushed, 0.3, dt).kl);
+        assert!((other - kl).abs() > 1e-6, "{other} vs {kl}");
     }
 }

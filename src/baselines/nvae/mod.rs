@@ -1,12 +1,15 @@
 //! The NewtonianVAE baseline (Jaques, Burke, Hospedales 2021): a VAE whose latent
 //! position `x` follows a Newtonian transition prior with diagonal, state-dependent `A`, `B < 0`,
-//! `C > 0`, trained on the dataset's samples `(i_{t-1}, i_t, u_t, i_{t+1})` by the ELBO, and
-//! controlled by PID on the posterior mean.
+//! `C > 0`, trained by the ELBO over windows of the dataset's episodes, with each frame after
+//! the second reconstructed from the prior's prediction, and controlled by PID on the posterior
+//! mean.
 
 mod loss;
 mod model;
 
-pub use loss::{ELBO_NAMES, ElboInputs, ElboTerms, elbo_loss, gaussian_kl, reconstruction_nll};
+pub use loss::{
+    ELBO_NAMES, ElboInputs, ElboTerms, VALIDATION_NAMES, elbo_loss, gaussian_kl, reconstruction_nll,
+};
 pub use model::{Decoder, GaussianEncoder, NvaeModel, NvaeTransition, TransitionMatrices};
 
 use crate::control::{LatentPolicy, Pid};
@@ -53,10 +56,33 @@ pub struct NvaeConfig {
     /// the ELBO is unchanged when the latent, `sigma_p` and `C` are scaled together), and with
     /// it the meaning of the PID gains.
     pub kl_standard_weight: f64,
-    /// KL annealing: the transition KL's weight `beta` rises linearly from `kl_start` at the
-    /// first step to 1 after `kl_anneal_steps` steps (0: `beta = 1` throughout).
+    /// KL annealing: the transition KL's weight `beta` is `kl_start` for the first
+    /// `kl_anneal_begin` steps, then rises linearly to 1 over `kl_anneal_steps` steps
+    /// (`kl_anneal_steps = 0`: `beta = 1` throughout). The NewtonianVAE paper anneals from 0.001 between epochs 30
+    /// and 60 of 300.
     pub kl_start: f64,
+    #[serde(default)]
+    pub kl_anneal_begin: u64,
     pub kl_anneal_steps: u64,
+    /// Frames per training window: a window of `L` consecutive frames of one episode gives
+    /// `L - 2` terms of the sequence ELBO (each predicts frame `t + 1` from frames `t - 1`, `t`
+    /// and `u_t`). The batch is `batch_size` windows.
+    #[serde(default = "default_sequence_len")]
+    pub sequence_len: usize,
+    /// Share of the dataset's episodes (the last ones) held out for the validation ELBO; 0
+    /// trains on every episode and validates nothing.
+    #[serde(default)]
+    pub validation_share: f64,
+    /// Steps between validation ELBOs (written to `validation.csv`).
+    #[serde(default = "default_validate_every")]
+    pub validate_every: u64,
+    /// Stopping rule: training ends once the validation ELBO at `beta = 1` has not improved on
+    /// its best by more than `plateau_tolerance` (relative) for `plateau_patience`
+    /// validations in a row (0: train for `steps`).
+    #[serde(default)]
+    pub plateau_patience: u64,
+    #[serde(default = "default_plateau_tolerance")]
+    pub plateau_tolerance: f64,
     /// The controller on the posterior mean.
     pub pid: PidController,
 }
@@ -64,6 +90,19 @@ pub struct NvaeConfig {
 /// ProCL's preset sharpness: at 1 the fresh soft-argmax barely moves with the scene.
 fn default_sharpness() -> f64 {
     30.0
+}
+
+/// Ten frames: eight ELBO terms per window, and the reacher's episodes of 10 steps hold one.
+fn default_sequence_len() -> usize {
+    10
+}
+
+fn default_validate_every() -> u64 {
+    100
+}
+
+fn default_plateau_tolerance() -> f64 {
+    1e-3
 }
 
 impl NvaeConfig {
@@ -82,7 +121,13 @@ impl NvaeConfig {
             recon_std: 0.1,
             kl_standard_weight: 1.0,
             kl_start: 0.001,
+            kl_anneal_begin: 0,
             kl_anneal_steps: 200,
+            sequence_len: default_sequence_len(),
+            validation_share: 0.1,
+            validate_every: default_validate_every(),
+            plateau_patience: 5,
+            plateau_tolerance: default_plateau_tolerance(),
             pid: PidController::default(),
         }
     }
@@ -94,10 +139,19 @@ impl NvaeConfig {
 
     /// The transition KL's weight `beta` at training step `step` (0-based).
     pub fn kl_weight(&self, step: u64) -> f64 {
-        if step >= self.kl_anneal_steps {
+        if step >= self.kl_anneal_end() {
             return 1.0;
         }
-        self.kl_start + (1.0 - self.kl_start) * step as f64 / self.kl_anneal_steps as f64
+        let into = step.saturating_sub(self.kl_anneal_begin) as f64;
+        self.kl_start + (1.0 - self.kl_start) * into / self.kl_anneal_steps as f64
+    }
+
+    /// The first step at which `beta = 1`.
+    pub fn kl_anneal_end(&self) -> u64 {
+        if self.kl_anneal_steps == 0 {
+            return 0;
+        }
+        self.kl_anneal_begin + self.kl_anneal_steps
     }
 
     /// Rejects invalid values with the field's name.
@@ -106,6 +160,7 @@ impl NvaeConfig {
             ("nvae.latent_dim", self.latent_dim),
             ("nvae.decoder_hidden", self.decoder_hidden),
             ("nvae.transition_hidden", self.transition_hidden),
+            ("nvae.validate_every", self.validate_every as usize),
         ];
         for (field, value) in sizes {
             if value == 0 {
@@ -124,6 +179,7 @@ impl NvaeConfig {
             ("nvae.recon_std", Some(self.recon_std)),
             ("nvae.dt_s", self.dt_s),
             ("nvae.pid.kp", Some(self.pid.kp)),
+            ("nvae.plateau_tolerance", Some(self.plateau_tolerance)),
         ];
         for (field, value) in positive {
             if let Some(value) = value
@@ -144,6 +200,27 @@ impl NvaeConfig {
                     format!("{value} must be finite and >= 0"),
                 ));
             }
+        }
+        if self.sequence_len < 3 {
+            return Err(Error::config(
+                "nvae.sequence_len",
+                format!(
+                    "{} frames hold no ELBO term (a term needs frames t - 1, t and t + 1)",
+                    self.sequence_len
+                ),
+            ));
+        }
+        if !(0.0..0.5).contains(&self.validation_share) {
+            return Err(Error::config(
+                "nvae.validation_share",
+                format!("{} must be in [0, 0.5)", self.validation_share),
+            ));
+        }
+        if self.plateau_patience > 0 && self.validation_share == 0.0 {
+            return Err(Error::config(
+                "nvae.plateau_patience",
+                "the stopping rule reads the validation ELBO: set nvae.validation_share > 0",
+            ));
         }
         if !(0.0..=1.0).contains(&self.kl_start) {
             return Err(Error::config(
@@ -173,8 +250,19 @@ mod tests {
             let got = config.kl_weight(step as u64);
             assert!((got - want).abs() < 1e-12, "step {step}: {got}");
         }
+        // A delayed start holds kl_start first.
+        config.kl_anneal_begin = 3;
+        for (step, want) in [0.2, 0.2, 0.2, 0.2, 0.4, 0.6, 0.8, 1.0]
+            .into_iter()
+            .enumerate()
+        {
+            let got = config.kl_weight(step as u64);
+            assert!((got - want).abs() < 1e-12, "step {step}: {got}");
+        }
+        assert_eq!(config.kl_anneal_end(), 7);
         config.kl_anneal_steps = 0;
         assert_eq!(config.kl_weight(0), 1.0);
+        assert_eq!(config.kl_anneal_end(), 0);
     }
 
     #[test]
@@ -199,6 +287,21 @@ mod tests {
                 "nvae.kl_start",
                 NvaeConfig {
                     kl_start: 1.5,
+                    ..base.clone()
+                },
+            ),
+            (
+                "nvae.sequence_len",
+                NvaeConfig {
+                    sequence_len: 2,
+                    ..base.clone()
+                },
+            ),
+            (
+                "nvae.plateau_patience",
+                NvaeConfig {
+                    plateau_patience: 3,
+                    validation_share: 0.0,
                     ..base.clone()
                 },
             ),

@@ -10,7 +10,7 @@ use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Tensor};
 
 use super::NvaeConfig;
-use crate::model::{Encoder, EncoderConfig, LatentEncoder, reinit_params};
+use crate::model::{Encoder, EncoderConfig, LatentEncoder, TrunkTape, reinit_params};
 
 /// The encoder `q(x | frame) = N(mean, diag(exp(log_std))^2)`: ProCL's conv trunk and head
 /// with `2 du` outputs, split into the mean and the log std. As a [`LatentEncoder`] it gives
@@ -26,6 +26,19 @@ impl GaussianEncoder {
         let out = self.net.forward(frames); // [n, 2 du]
         let du = out.dims()[1] / 2;
         (out.clone().narrow(1, 0, du), out.narrow(1, du, du))
+    }
+
+    /// As [`Self::posterior`] for training on raw frames: on the CPU the conv trunk runs
+    /// outside burn's graph, and its tape carries the gradient back
+    /// ([`crate::model::TrunkTape::backward`]).
+    pub fn posterior_training(
+        &self,
+        frames: &[&[u8]],
+        device: &Device,
+    ) -> (Tensor<2>, Tensor<2>, Option<TrunkTape>) {
+        let (out, tape) = self.net.forward_training(frames, device); // [n, 2 du]
+        let du = out.dims()[1] / 2;
+        (out.clone().narrow(1, 0, du), out.narrow(1, du, du), tape)
     }
 }
 
@@ -182,13 +195,13 @@ impl NvaeConfig {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use burn::tensor::TensorData;
 
     use super::*;
     use crate::model::{cpu_device, to_vec};
 
-    fn tiny() -> NvaeConfig {
+    pub(crate) fn tiny() -> NvaeConfig {
         NvaeConfig {
             trunk_channels: [4, 4],
             encoder_head: crate::model::EncoderHead::Mlp { hidden: 8 },
