@@ -483,6 +483,9 @@ pub struct HostEncoder {
     pub(crate) head: HostHead,
     /// The orientation `Q`, row-major `du x du`: `h = Q raw`.
     pub(crate) transform: Vec<f32>,
+    /// How many leading components of `Q raw` are `h`: all of them, or the mean's half of a
+    /// NewtonianVAE's `(mean, log std)`.
+    outputs: usize,
     /// Each byte's network input ([`super::pixel_input`], looked up once per byte value).
     pixel_values: [f32; 256],
     buffers: Buffers,
@@ -514,6 +517,7 @@ impl HostEncoder {
             conv1,
             conv2,
             head,
+            outputs: (transform.len() as f64).sqrt() as usize,
             transform,
             pixel_values: super::pixel_table(),
             buffers: Buffers::default(),
@@ -522,7 +526,15 @@ impl HostEncoder {
 
     /// Dimension of `h`.
     pub fn latent_dim(&self) -> usize {
-        (self.transform.len() as f64).sqrt() as usize
+        self.outputs
+    }
+
+    /// The same encoder giving only the first `n` components of `h`.
+    pub(crate) fn leading(self, n: usize) -> Self {
+        Self {
+            outputs: n.min(self.outputs),
+            ..self
+        }
     }
 
     /// `h` of one RGB u8 frame (64x64, row-major, channels innermost), written into `h`.
@@ -637,7 +649,7 @@ impl HostEncoder {
             }
         }
         let du = buffers.raw.len();
-        for (i, hi) in h.iter_mut().enumerate().take(du) {
+        for (i, hi) in h.iter_mut().enumerate().take(self.outputs) {
             *hi = (0..du)
                 .map(|j| self.transform[i * du + j] * buffers.raw[j])
                 .sum::<f32>() as f64;

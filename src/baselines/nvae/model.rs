@@ -10,7 +10,7 @@ use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Tensor};
 
 use super::NvaeConfig;
-use crate::model::{Encoder, EncoderConfig, LatentEncoder, TrunkTape, reinit_params};
+use crate::model::{Encoder, EncoderConfig, HostEncoder, LatentEncoder, TrunkTape, reinit_params};
 
 /// The encoder `q(x | frame) = N(mean, diag(exp(log_std))^2)`: ProCL's conv trunk and head
 /// with `2 du` outputs, split into the mean and the log std. As a [`LatentEncoder`] it gives
@@ -48,6 +48,9 @@ impl LatentEncoder for GaussianEncoder {
     }
     fn latent_dim(&self) -> usize {
         self.net.latent_dim() / 2
+    }
+    fn host_encoder(&self) -> Option<HostEncoder> {
+        Some(self.net.host_encoder().leading(self.latent_dim()))
     }
 }
 
@@ -226,6 +229,42 @@ pub(crate) mod tests {
         // The control-time latent is the posterior mean.
         assert_eq!(to_vec(model.encoder.encode(frames)), to_vec(mean));
         assert_eq!(LatentEncoder::latent_dim(&model.encoder), 2);
+    }
+
+    #[test]
+    fn host_encoder_gives_the_posterior_mean() {
+        let device = cpu_device();
+        let frames = crate::model::start_frames(crate::envs::EnvKind::PointMass, 3);
+        for head in [
+            crate::model::EncoderHead::Mlp { hidden: 8 },
+            crate::model::EncoderHead::SoftArgmax {
+                keypoints: 4,
+                hidden: 0,
+                polar: false,
+                pairwise_angles: false,
+            },
+        ] {
+            let config = NvaeConfig {
+                encoder_head: head,
+                ..tiny()
+            };
+            let encoder = config.init(2, &device).unwrap().encoder;
+            let input = crate::model::frames_to_tensor(frames.iter().map(|f| &f[..]), &device);
+            let (mean, _) = encoder.posterior(input);
+            let mean = to_vec(mean);
+            let mut host = encoder.host_encoder().expect("a host copy");
+            assert_eq!(host.latent_dim(), 2);
+            for (k, frame) in frames.iter().enumerate() {
+                let mut h = [0.0; 2];
+                host.encode(frame, &mut h);
+                for (got, want) in h.iter().zip(&mean[2 * k..2 * k + 2]) {
+                    assert!(
+                        (got - f64::from(*want)).abs() < 1e-4,
+                        "{head:?}: {got} vs {want}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
