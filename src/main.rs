@@ -796,8 +796,8 @@ fn print_report(report: &procl::eval::ReachReport) {
         report.env, p.episodes, p.horizon, p.success_threshold, p.distance_unit
     );
     println!(
-        "{:<26} {:>8} {:>22} {:>18}",
-        "method", "success", "final distance", "control p50/p99 us"
+        "{:<26} {:>8} {:>22} {:>18} {:>10} {:>9}",
+        "method", "success", "final distance", "control p50/p99 us", "reversals", "late std"
     );
     for m in &report.methods {
         let time = match (m.control_time_us_p50, m.control_time_us_p99) {
@@ -805,12 +805,14 @@ fn print_report(report: &procl::eval::ReachReport) {
             _ => "-".into(),
         };
         println!(
-            "{:<26} {:>7.1}% {:>11.4} +- {:<8.4} {:>18}",
+            "{:<26} {:>7.1}% {:>11.4} +- {:<8.4} {:>18} {:>10.2} {:>9.4}",
             m.method,
             100.0 * m.success_rate,
             m.final_mean,
             m.final_std,
-            time
+            time,
+            m.reversals_mean,
+            m.late_distance_std_mean
         );
     }
     for m in &report.methods {

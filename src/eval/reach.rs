@@ -184,6 +184,13 @@ pub struct MethodSummary {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub final_fingertip_std_m: Option<f64>,
     pub success_rate: f64,
+    /// Oscillation about the goal, per episode and averaged over episodes: the times the
+    /// distance turns from falling to rising by more than half the success threshold
+    /// ([`reversals`]), and the std of the distance over the last [`LATE_STEPS`] steps.
+    #[serde(default)]
+    pub reversals_mean: f64,
+    #[serde(default)]
+    pub late_distance_std_mean: f64,
     /// Control time per step (encode one frame + PD), microseconds; absent for the oracle.
     pub control_time_us_p50: Option<f64>,
     pub control_time_us_p99: Option<f64>,
@@ -202,6 +209,35 @@ fn mean_std(xs: &[f64]) -> (f64, f64) {
     let mean = xs.iter().sum::<f64>() / n;
     let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
     (mean, var.sqrt())
+}
+
+/// The closing steps over which [`MethodSummary::late_distance_std_mean`] measures how much
+/// the distance still moves.
+pub const LATE_STEPS: usize = 100;
+
+/// How many times `distances` turns from falling to rising, each turn by more than
+/// `tolerance` (a rise of `tolerance` above the lowest point since the last turn, then a fall
+/// of `tolerance` below the highest before the next): an overshoot or an orbit of the goal
+/// counts, jitter under `tolerance` does not.
+pub fn reversals(distances: &[f64], tolerance: f64) -> usize {
+    let Some(&first) = distances.first() else {
+        return 0;
+    };
+    let (mut falling, mut extreme, mut count) = (true, first, 0);
+    for &d in &distances[1..] {
+        if falling {
+            if d < extreme {
+                extreme = d;
+            } else if d > extreme + tolerance {
+                (falling, extreme, count) = (false, d, count + 1);
+            }
+        } else if d > extreme {
+            extreme = d;
+        } else if d < extreme - tolerance {
+            (falling, extreme) = (true, d);
+        }
+    }
+    count
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -253,6 +289,13 @@ pub fn summarise(
         .iter()
         .filter(|&&d| d < config.success_threshold)
         .count();
+    let per_episode = |f: &dyn Fn(&[f64]) -> f64| {
+        mean_std(&episodes.iter().map(|e| f(&e.distances)).collect::<Vec<_>>()).0
+    };
+    let tolerance = config.success_threshold / 2.0;
+    let reversals_mean = per_episode(&|d| reversals(d, tolerance) as f64);
+    let late_distance_std_mean =
+        per_episode(&|d| mean_std(&d[d.len().saturating_sub(LATE_STEPS)..]).1);
     let mut times: Vec<f64> = control_times_s.iter().map(|t| t * 1e6).collect();
     times.sort_by(f64::total_cmp);
     let timed = !times.is_empty();
@@ -280,6 +323,8 @@ pub fn summarise(
         final_fingertip_std_m: fingertip_mean_std.map(|(_, std)| std),
         final_fingertip_distances_m: fingertip,
         success_rate: successes as f64 / finals.len().max(1) as f64,
+        reversals_mean,
+        late_distance_std_mean,
         control_time_us_p50: timed.then(|| percentile(&times, 0.5)),
         control_time_us_p99: timed.then(|| percentile(&times, 0.99)),
     }
@@ -323,4 +368,23 @@ pub struct TrackSummary {
     pub rms_error: f64,
     /// Largest error seen.
     pub max_error: f64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::reversals;
+
+    #[test]
+    fn reversals_count_turns_larger_than_the_tolerance() {
+        // A monotone approach has none; jitter under the tolerance is ignored.
+        assert_eq!(reversals(&[1.0, 0.5, 0.2, 0.1, 0.0], 0.05), 0);
+        assert_eq!(reversals(&[1.0, 0.5, 0.52, 0.49, 0.51, 0.3], 0.05), 0);
+        // Two overshoots: down to 0.1, up to 0.4, down to 0.05, up to 0.2, settling at 0.
+        let orbit = [1.0, 0.1, 0.4, 0.05, 0.2, 0.0];
+        assert_eq!(reversals(&orbit, 0.05), 2);
+        // A rise counts once however long it lasts; a larger tolerance hides the small one.
+        assert_eq!(reversals(&[0.5, 0.0, 0.1, 0.2, 0.3, 0.0], 0.05), 1);
+        assert_eq!(reversals(&orbit, 0.2), 1);
+        assert_eq!(reversals(&[], 0.1), 0);
+    }
 }
