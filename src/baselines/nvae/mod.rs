@@ -30,8 +30,10 @@ pub struct NvaeConfig {
     pub latent_dim: usize,
     /// Encoder: channels of the two stride-2 trunk convs (64 -> 32 -> 16 pixels), as ProCL's.
     pub trunk_channels: [usize; 2],
-    /// Encoder head, with `2 du` outputs (mean and log std of `q(x | frame)`). Default: the
-    /// PC3-style flatten + MLP head, the usual VAE encoder.
+    /// Encoder head, with `2 du` outputs (mean and log std of `q(x | frame)`). Default:
+    /// ProCL's soft-argmax keypoints, so that every method compares on the same encoder; with
+    /// the PC3-style MLP head the latent was still folded after 1000 steps
+    /// (docs/research/point-mass.md).
     pub encoder_head: EncoderHead,
     /// Initial soft-argmax sharpness (soft-argmax heads only; learned from there), as ProCL's
     /// `model.encoder.keypoint_sharpness`.
@@ -111,7 +113,12 @@ impl NvaeConfig {
         Self {
             latent_dim: du,
             trunk_channels: [16, 32],
-            encoder_head: EncoderHead::Mlp { hidden: 128 },
+            encoder_head: EncoderHead::SoftArgmax {
+                keypoints: 16,
+                hidden: 0,
+                polar: false,
+                pairwise_angles: false,
+            },
             keypoint_sharpness: default_sharpness(),
             decoder_hidden: 128,
             decoder_channels: [32, 16, 8],
@@ -121,11 +128,11 @@ impl NvaeConfig {
             recon_std: 0.1,
             kl_standard_weight: 1.0,
             kl_start: 0.001,
-            kl_anneal_begin: 0,
-            kl_anneal_steps: 200,
+            kl_anneal_begin: 500,
+            kl_anneal_steps: 500,
             sequence_len: default_sequence_len(),
             validation_share: 0.1,
-            validate_every: default_validate_every(),
+            validate_every: 200,
             plateau_patience: 5,
             plateau_tolerance: default_plateau_tolerance(),
             pid: PidController::default(),
@@ -243,6 +250,7 @@ mod tests {
     fn kl_weight_anneals_linearly_to_one() {
         let mut config = NvaeConfig {
             kl_start: 0.2,
+            kl_anneal_begin: 0,
             kl_anneal_steps: 4,
             ..NvaeConfig::for_action_dim(2)
         };
