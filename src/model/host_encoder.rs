@@ -300,7 +300,11 @@ pub(crate) fn exp_non_positive(x: f32) -> f32 {
         0.5,
     ];
     let clamped = x.max(-87.3);
-    let n = (clamped * std::f32::consts::LOG2_E).round_ties_even();
+    // Rounds to the nearest integer by adding and removing 1.5 * 2^23, where f32 has no
+    // fraction bits left: plain additions, which vectorise on any x86-64, where
+    // `round_ties_even` becomes a call to libm's `rintf` without SSE4.1.
+    const ROUND: f32 = 12_582_912.0;
+    let n = (clamped * std::f32::consts::LOG2_E + ROUND) - ROUND;
     let r = clamped - n * LN2_HI - n * LN2_LO;
     let poly = P.iter().fold(0.0f32, |acc, &c| acc * r + c);
     let exp_r = poly * r * r + r + 1.0;
