@@ -251,6 +251,20 @@ impl TrainConfig {
                 config.steps = NVAE_STEPS;
             }
         }
+        if env == EnvKind::Reacher
+            && preset == Preset::Procl
+            && let Some(nvae) = config.nvae.as_mut()
+        {
+            // ProCL's reacher head (below): with Cartesian keypoints the NewtonianVAE's
+            // latent is the fingertip's image position, and PID reaches 2% of goals
+            // (docs/research/reacher.md, H).
+            nvae.encoder_head = EncoderHead::SoftArgmax {
+                keypoints: 16,
+                hidden: 32,
+                polar: true,
+                pairwise_angles: true,
+            };
+        }
         if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
             // The shoulder is a revolute joint at the image centre: polar keypoints about it,
             // the angles between keypoints (entering from 0, faded at the angle cut) over 32x32
