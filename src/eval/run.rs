@@ -105,17 +105,23 @@ pub fn run_policy(
             let policy = LatentPdPolicy::new(model.encoder, device, pd, env_dt);
             Ok((format!("{label} + PD"), env_dt, Box::new(policy)))
         }
-        (TrainedModel::Nvae(model), Some(nvae)) => {
-            let dt = nvae.dt(env_dt);
-            let pid = Pid::new(nvae.pid, dt);
-            let policy = LatentPidPolicy::new(model.encoder, device, pid, dt);
+        (TrainedModel::Nvae(model), _) => {
+            let (gains, dt) = nvae_control(config)?;
+            let policy = LatentPidPolicy::new(model.encoder, device, Pid::new(gains, dt), dt);
             Ok((format!("{label} + PID"), dt, Box::new(policy)))
         }
-        (TrainedModel::Nvae(_), None) => Err(Error::config(
+    }
+}
+
+/// A NewtonianVAE run's PID gains and the `dt` of its latent velocity.
+fn nvae_control(config: &TrainConfig) -> Result<(PidController, f64)> {
+    let nvae = config.nvae.as_ref().ok_or_else(|| {
+        Error::config(
             "nvae",
             "a NewtonianVAE model needs its [nvae] configuration",
-        )),
-    }
+        )
+    })?;
+    Ok((nvae.pid, nvae.dt(config.control_dt_s())))
 }
 
 /// Computes the latent diagnostics of a trained run and writes `latent_map.png` and
@@ -216,17 +222,11 @@ pub fn evaluate_run_with(
             (format!("{} + iLQR", config.method.label()), records, times)
         }
         (Controller::Proportional, TrainedModel::Nvae(model)) => {
-            let nvae = config.nvae.as_ref().ok_or_else(|| {
-                Error::config(
-                    "nvae",
-                    "a NewtonianVAE model needs its [nvae] configuration",
-                )
-            })?;
-            let dt = nvae.dt(config.control_dt_s());
+            let (pid, dt) = nvae_control(&config)?;
             let gains = PidController {
                 ki: 0.0,
                 kd: 0.0,
-                ..nvae.pid
+                ..pid
             };
             let policy = LatentPidPolicy::new(model.encoder, device, Pid::new(gains, dt), dt);
             let (records, times) = reach_with(env, protocol, policy, &mut progress)?;

@@ -11,7 +11,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::{Objective, RunPaths, TrainConfig, normal_tensor, step_rng, truncate_metrics};
 use crate::baselines::nvae::{
-    ELBO_NAMES, ElboInputs, ElboTerms, NvaeConfig, NvaeModel, VALIDATION_NAMES, elbo_loss,
+    ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, VALIDATION_NAMES, elbo_loss,
 };
 use crate::data::Dataset;
 use crate::error::{Error, Result};
@@ -127,16 +127,17 @@ impl<'a> WindowBatch<'a> {
         }
     }
 
-    /// Encodes the frames and returns the ELBO's inputs with the trunk's tape.
-    fn inputs(self, model: &NvaeModel, device: &Device) -> (ElboInputs, Option<TrunkTape>) {
+    /// Encodes the frames and returns the ELBO's inputs with the trunk's tape (the batch's
+    /// tensors are shared, not copied).
+    fn inputs(&self, model: &NvaeModel, device: &Device) -> (ElboInputs, Option<TrunkTape>) {
         let (mean, log_std, tape) = model.encoder.posterior_training(&self.frames, device);
         let inputs = ElboInputs {
             mean,
             log_std,
-            targets: self.targets,
-            u: self.u,
-            posterior_noise: self.posterior_noise,
-            prior_noise: self.prior_noise,
+            targets: self.targets.clone(),
+            u: self.u.clone(),
+            posterior_noise: self.posterior_noise.clone(),
+            prior_noise: self.prior_noise.clone(),
             windows: self.windows,
         };
         (inputs, tape)
@@ -185,6 +186,8 @@ pub(crate) struct NvaeObjective<'a> {
     device: &'a Device,
     split: EpisodeSplit,
     plateau: PlateauRule,
+    /// The validation windows and noise, drawn once (`None` without validation episodes).
+    validation: Option<WindowBatch<'a>>,
 }
 
 impl<'a> NvaeObjective<'a> {
@@ -195,14 +198,18 @@ impl<'a> NvaeObjective<'a> {
         run: &'a RunPaths,
         device: &'a Device,
     ) -> Result<Self> {
+        let split = EpisodeSplit::of(data, nvae)?;
+        let validation = (!split.validation.is_empty())
+            .then(|| validation_batch(data, config.seed, nvae.sequence_len, &split, device));
         Ok(Self {
             config,
             nvae,
             data,
             run,
             device,
-            split: EpisodeSplit::of(data, nvae)?,
+            split,
             plateau: PlateauRule::new(nvae.plateau_patience, nvae.plateau_tolerance),
+            validation,
         })
     }
 
@@ -210,29 +217,32 @@ impl<'a> NvaeObjective<'a> {
         self.nvae.dt(self.data.meta.control_dt_s)
     }
 
-    /// The ELBO at `beta = 1` on the validation windows: the same windows and noise at every
-    /// validation (a stream of the seed that training never draws from).
-    fn validation_elbo(&self, model: &NvaeModel) -> ElboTerms {
-        let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed);
-        rng.set_stream(u64::MAX - 1);
-        let len = self.nvae.sequence_len;
-        let episodes = &self.split.validation;
-        let available = episodes.len() * (self.data.steps() + 2 - len);
-        let windows = sample_windows(
-            self.data,
-            &mut rng,
-            episodes,
-            len,
-            available.min(VALIDATION_WINDOWS),
-        );
-        let batch = WindowBatch::new(self.data, &windows, len, &mut rng, self.device);
-        let (inputs, _) = batch.inputs(model, self.device);
-        elbo_loss(model, self.nvae, inputs, 1.0, self.dt())
-    }
-
     fn validation_header() -> String {
-        super::metrics_header(&VALIDATION_NAMES).replace(",seconds", "")
+        format!("step,{}", VALIDATION_NAMES.join(","))
     }
+}
+
+/// Up to [`VALIDATION_WINDOWS`] windows of the validation episodes and their noise, from a
+/// stream of the seed that training never draws from: the same at every validation.
+fn validation_batch<'a>(
+    data: &'a Dataset,
+    seed: u64,
+    len: usize,
+    split: &EpisodeSplit,
+    device: &Device,
+) -> WindowBatch<'a> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(u64::MAX - 1);
+    let episodes = &split.validation;
+    let available = episodes.len() * (data.steps() + 2 - len);
+    let windows = sample_windows(
+        data,
+        &mut rng,
+        episodes,
+        len,
+        available.min(VALIDATION_WINDOWS),
+    );
+    WindowBatch::new(data, &windows, len, &mut rng, device)
 }
 
 impl Objective for NvaeObjective<'_> {
@@ -240,7 +250,7 @@ impl Objective for NvaeObjective<'_> {
     const METRICS: &'static [&'static str] = &ELBO_NAMES;
 
     fn begin(&mut self, resumed_at: Option<u64>) -> Result<()> {
-        if self.split.validation.is_empty() {
+        if self.validation.is_none() {
             return Ok(());
         }
         let path = self.run.validation();
@@ -289,10 +299,14 @@ impl Objective for NvaeObjective<'_> {
 
     fn stop_after(&mut self, model: &NvaeModel, step: u64) -> Result<bool> {
         let done = step + 1;
-        if self.split.validation.is_empty() || !done.is_multiple_of(self.nvae.validate_every) {
+        let Some(batch) = self.validation.as_ref() else {
+            return Ok(false);
+        };
+        if !done.is_multiple_of(self.nvae.validate_every) {
             return Ok(false);
         }
-        let values = self.validation_elbo(model).values();
+        let (inputs, _) = batch.inputs(model, self.device);
+        let values = elbo_loss(model, self.nvae, inputs, 1.0, self.dt()).values();
         let path = self.run.validation();
         let row: Vec<String> = values.values[..VALIDATION_NAMES.len()]
             .iter()
