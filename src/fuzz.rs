@@ -192,7 +192,7 @@ impl Harness {
                     &path,
                     &model,
                     None,
-                    &crate::train::checkpoint::CheckpointMeta { step: 1 },
+                    &crate::train::checkpoint::CheckpointMeta::at(1),
                 )?;
                 vec![read(&path)?]
             }

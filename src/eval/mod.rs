@@ -12,7 +12,8 @@ pub use latent_map::{
     local_map_shares, pushes_away_share,
 };
 pub use plots::{
-    register_font, save_episode_gif, save_latent_plot, save_reach_plot, save_track_plot,
+    register_font, save_episode_gif, save_latent_plot, save_learning_plot, save_reach_plot,
+    save_track_plot,
 };
 pub use reach::{
     EpisodeRecord, MethodSummary, ReachConfig, ReachReport, TrackSummary, evaluate_reach,

@@ -180,6 +180,79 @@ fn distance_chart(
     }
 }
 
+/// Success against wall-clock training seconds (log x), one line with markers per `(label,
+/// points)` curve, and the equal training budget (if any) as a dashed vertical line.
+pub fn save_learning_plot(
+    path: &Path,
+    title: &str,
+    curves: &[(String, Vec<(f64, f64)>)],
+    budget_seconds: Option<f64>,
+) -> Result<()> {
+    render_png(path, (900, 560), |root| {
+        let seconds = curves
+            .iter()
+            .flat_map(|(_, points)| points.iter().map(|(t, _)| *t))
+            .chain(budget_seconds)
+            .filter(|t| t.is_finite() && *t > 0.0);
+        let (lo, hi) = seconds.fold((f64::INFINITY, 0.0f64), |(lo, hi), t| {
+            (lo.min(t), hi.max(t))
+        });
+        let (lo, hi) = if hi > 0.0 { (lo, hi) } else { (1.0, 10.0) };
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d((lo * 0.8..hi * 1.25).log_scale(), 0f64..100f64)
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("training time (s, wall clock)")
+            .y_desc("goals reached (%)")
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        for (k, (label, points)) in curves.iter().enumerate() {
+            let color = PALETTE[k % PALETTE.len()];
+            let line: Vec<(f64, f64)> = points
+                .iter()
+                .filter(|(t, _)| *t > 0.0)
+                .map(|(t, success)| (*t, 100.0 * success))
+                .collect();
+            chart
+                .draw_series(LineSeries::new(line.clone(), color.stroke_width(2)))
+                .map_err(|e| e.to_string())?
+                .label(label.as_str())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+            chart
+                .draw_series(line.into_iter().map(|p| Circle::new(p, 3, color.filled())))
+                .map_err(|e| e.to_string())?;
+        }
+        if let Some(budget) = budget_seconds.filter(|b| *b > 0.0) {
+            chart
+                .draw_series(DashedLineSeries::new(
+                    [(budget, 0.0), (budget, 100.0)],
+                    6,
+                    4,
+                    BLACK.stroke_width(1),
+                ))
+                .map_err(|e| e.to_string())?
+                .label("equal budget (ProCL's training time)")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(|e| e.to_string())
+    })
+}
+
 /// A chart over a plane: the latent `(h[0], h[1])` or the configuration `(q[0], q[1])`.
 pub(crate) type LatentChart<'a, 'b> =
     ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;

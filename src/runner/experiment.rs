@@ -14,12 +14,12 @@ use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::eval::{
     Controller, EvalOutputs, LATENT_MAP, LatentDiagnostics, MethodSummary, ReachConfig,
-    TRACK_FIGURE, TrackReport, save_reach_plot, track_run, write_diagnostics,
+    TRACK_FIGURE, TrackReport, save_learning_plot, save_reach_plot, track_run, write_diagnostics,
 };
 use crate::runner::stages::{
     Outcome, collect_or_reuse, evaluate_or_reuse, evaluate_or_reuse_with, reach_protocol,
     read_current, read_eval, read_eval_with, set_budget, shrink_networks, train_or_reuse,
-    training_seconds,
+    training_clock, training_seconds,
 };
 use crate::train::{Method, Preset, RunPaths, TrainConfig};
 
@@ -29,8 +29,11 @@ pub struct EnvBudget {
     pub env: EnvKind,
     pub transitions: usize,
     pub episode_len: usize,
-    /// Training steps of every method on this environment (same budget for each).
-    pub train_steps: u64,
+    /// Training steps of every method on this environment (`None`: each method's preset, which
+    /// trains it to its own convergence).
+    pub train_steps: Option<u64>,
+    /// Steps between the weights kept for the learning curves and the equal-budget comparison.
+    pub snapshot_every: u64,
 }
 
 /// What `procl experiment paper` runs.
@@ -61,26 +64,28 @@ pub struct ExperimentConfig {
 }
 
 impl ExperimentConfig {
-    /// The full experiment: the paper's dataset sizes, every method trained on the same budget
-    /// per environment, 50 evaluation episodes, eps in {0.001, 0.01, 0.1}.
+    /// The full experiment: the paper's dataset sizes, every method trained to its own
+    /// convergence (its preset), 50 evaluation episodes, eps in {0.001, 0.01, 0.1}.
     pub fn paper(out: impl Into<PathBuf>) -> Self {
-        let budget = |env, train_steps| {
+        let budget = |env, snapshot_every| {
             let defaults = CollectConfig::new(env, 0);
             EnvBudget {
                 env,
                 transitions: defaults.transitions,
                 episode_len: defaults.episode_len,
-                train_steps,
+                train_steps: None,
+                snapshot_every,
             }
         };
         Self {
             out: out.into(),
             seed: 0,
+            // About a dozen snapshots of a ProCL run, so that the equal-budget comparison
+            // finds every method's weights within a few seconds of ProCL's training time.
             envs: vec![
-                budget(EnvKind::PointMass, 600),
-                // The reacher's latent needs longer to open (docs/research/reacher.md).
-                budget(EnvKind::Reacher, 1200),
-                budget(EnvKind::Fetch, 600),
+                budget(EnvKind::PointMass, 50),
+                budget(EnvKind::Reacher, 100),
+                budget(EnvKind::Fetch, 50),
             ],
             methods: vec![Method::Procl, Method::Pc3, Method::Nvae],
             batch_size: None,
@@ -102,7 +107,8 @@ impl ExperimentConfig {
     pub fn quick(out: impl Into<PathBuf>) -> Self {
         let mut config = Self::paper(out);
         for budget in &mut config.envs {
-            (budget.transitions, budget.episode_len, budget.train_steps) = (200, 25, 6);
+            (budget.transitions, budget.episode_len) = (200, 25);
+            (budget.train_steps, budget.snapshot_every) = (Some(6), 2);
         }
         config.batch_size = Some(16);
         config.eval_episodes = 2;
@@ -117,7 +123,9 @@ impl ExperimentConfig {
     pub fn train_config(&self, budget: &EnvBudget, method: Method) -> TrainConfig {
         let mut config = TrainConfig::preset(Preset::Procl, method, budget.env);
         config.seed = self.seed;
-        set_budget(&mut config, budget.train_steps, self.batch_size);
+        let steps = budget.train_steps.unwrap_or(config.steps);
+        set_budget(&mut config, steps, self.batch_size);
+        config.snapshot_every = budget.snapshot_every;
         if self.tiny_model {
             shrink_networks(&mut config);
         }
@@ -147,12 +155,35 @@ impl ExperimentConfig {
         }
     }
 
+    /// The ProCL configuration of the ablation's cell `eps` on point mass (without snapshots:
+    /// the ablation has no learning curves).
+    fn ablation_config(&self, eps: f64) -> TrainConfig {
+        let mut config = self.train_config(&self.envs[0], Method::Procl);
+        if config.loss.latent_noise_std != eps {
+            config.loss.latent_noise_std = eps;
+            config.snapshot_every = 0;
+        }
+        config
+    }
+
     /// The planners evaluated on `method`'s runs (those with a learned dynamics `g`).
     fn planners_of(&self, method: Method) -> &[Controller] {
         match method {
             Method::Procl | Method::Pc3 => &self.planners,
             Method::Nvae => &[],
         }
+    }
+
+    /// The training budget of the equal-budget comparison on `env`: the wall-clock seconds
+    /// ProCL's run took to its own convergence on this machine (`None` before it has trained,
+    /// or without ProCL among the methods).
+    fn equal_budget_seconds(&self, env: EnvKind) -> Option<f64> {
+        if !self.methods.contains(&Method::Procl) {
+            return None;
+        }
+        let run = self.run(env, Method::Procl);
+        crate::read_checkpoint_meta(&run.checkpoint()).ok()?;
+        training_seconds(&run)
     }
 
     fn has_fetch(&self) -> bool {
@@ -306,7 +337,7 @@ fn count_stages(config: &ExperimentConfig) -> usize {
         .iter()
         .map(|m| config.planners_of(*m).len())
         .sum();
-    config.envs.len() * (1 + 2 * config.methods.len() + planned) + 2 * ablation_runs + tracking
+    config.envs.len() * (1 + 3 * config.methods.len() + planned) + 2 * ablation_runs + tracking
 }
 
 fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
@@ -332,6 +363,19 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
             let name = format!("{env}/{}", method.dir_name());
             let protocol = config.protocol(env);
             train_and_evaluate(stages, &name, &train_config, &data, &run, &protocol)?;
+            let budget_seconds = config.equal_budget_seconds(env);
+            stages.run(&format!("{name}/curve"), |progress| {
+                let steps = curve_snapshots(&run, budget_seconds);
+                let mut outcome = Outcome::Reused;
+                for (k, step) in steps.iter().enumerate() {
+                    let (_, ran) = evaluate_or_reuse(&run.snapshot(*step), &protocol, |_| {})?;
+                    if ran == Outcome::Ran {
+                        outcome = Outcome::Ran;
+                    }
+                    progress(k as u64 + 1, steps.len() as u64);
+                }
+                Ok(((), outcome))
+            })?;
             for planner in config.planners_of(*method) {
                 let file = EvalOutputs::for_controller(&run, planner).json;
                 let stem = file.file_stem().map(|s| s.to_string_lossy().into_owned());
@@ -347,7 +391,6 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
             }
         }
     }
-    let point_mass = &config.envs[0];
     let mut data = None;
     for eps in &config.ablation_noise {
         let (run, is_main) = config.ablation_run(*eps);
@@ -360,8 +403,7 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
                 &config.env_dir(EnvKind::PointMass).join("data.npz"),
             )?),
         };
-        let mut train_config = config.train_config(point_mass, Method::Procl);
-        train_config.loss.latent_noise_std = *eps;
+        let train_config = config.ablation_config(*eps);
         train_and_evaluate(
             stages,
             &format!("point-mass/ablation/eps={eps}"),
@@ -416,6 +458,69 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
         })?;
     }
     Ok(())
+}
+
+/// Indices (from 1) of the snapshots a learning curve evaluates out of `count`: 1, 2, 3, 4, 6,
+/// 8, 12, 16, ... (powers of two and three times them, each at most 1.5 times the last), so
+/// the points spread evenly over a log time axis, and the last one.
+fn curve_indices(count: usize) -> Vec<usize> {
+    let mut indices: Vec<usize> = (0..40)
+        .flat_map(|j| [1usize << j, 3usize << j])
+        .filter(|&k| k <= count)
+        .collect();
+    if count > 0 {
+        indices.push(count);
+    }
+    indices.sort_unstable();
+    indices.dedup();
+    indices
+}
+
+/// The weights of `run` the equal-budget comparison evaluates: the latest of its snapshots
+/// and its final checkpoint that it had trained within `budget_seconds`, as (step, training
+/// seconds at it, whether it is the final checkpoint). `None` when even the first took longer.
+fn within_budget(run: &RunPaths, budget_seconds: f64) -> Option<(u64, f64, bool)> {
+    let last = crate::read_checkpoint_meta(&run.checkpoint()).ok()?.step;
+    let clock = training_clock(run)?;
+    let seconds_at = |step: u64| {
+        clock
+            .binary_search_by_key(&step, |(s, _)| *s)
+            .ok()
+            .map(|k| clock[k].1)
+    };
+    let mut steps = run.snapshot_steps();
+    steps.retain(|&step| step < last);
+    steps.push(last);
+    steps
+        .into_iter()
+        .filter_map(|step| Some((step, seconds_at(step)?, step == last)))
+        // A hair of slack, so ProCL's own run counts as within its own time.
+        .filter(|(_, seconds, _)| *seconds <= budget_seconds * (1.0 + 1e-9))
+        .next_back()
+}
+
+/// The snapshot steps of `run` its learning curve evaluates: [`curve_indices`] of its
+/// snapshots and the one [`within_budget`] picks, without the final checkpoint (the run's own
+/// evaluation).
+fn curve_snapshots(run: &RunPaths, budget_seconds: Option<f64>) -> Vec<u64> {
+    let Ok(meta) = crate::read_checkpoint_meta(&run.checkpoint()) else {
+        return vec![];
+    };
+    let snapshots: Vec<u64> = run
+        .snapshot_steps()
+        .into_iter()
+        .filter(|&step| step < meta.step)
+        .collect();
+    let mut steps: Vec<u64> = curve_indices(snapshots.len())
+        .into_iter()
+        .map(|k| snapshots[k - 1])
+        .collect();
+    if let Some((step, _, false)) = budget_seconds.and_then(|b| within_budget(run, b)) {
+        steps.push(step);
+    }
+    steps.sort_unstable();
+    steps.dedup();
+    steps
 }
 
 /// The train stage and the eval stage of one run.
@@ -474,9 +579,38 @@ pub struct Row {
     #[serde(default)]
     pub locally_unstable_share: Option<f64>,
     pub train_seconds: Option<f64>,
+    /// Training steps the run took (its preset's, or fewer where its stopping rule ended it).
+    #[serde(default)]
+    pub train_steps: Option<u64>,
     /// Per-step distance to the goal (mean and std over episodes): the main figure's curve.
     #[serde(skip)]
     pub curve: MethodSummary,
+}
+
+/// One method's weights at one point of its training, evaluated.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CurvePoint {
+    pub step: u64,
+    /// Wall-clock training seconds up to `step`.
+    pub seconds: f64,
+    pub success_rate: f64,
+    pub final_mean: f64,
+    pub final_std: f64,
+}
+
+/// One method's success over its training: its learning curve.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct LearningCurve {
+    pub method: String,
+    pub points: Vec<CurvePoint>,
+}
+
+/// One method at the equal training budget: its latest weights trained within it.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BudgetRow {
+    pub method: String,
+    /// `None` when even the method's first snapshot took longer than the budget.
+    pub point: Option<CurvePoint>,
 }
 
 /// One environment's results.
@@ -484,8 +618,12 @@ pub struct Row {
 pub struct EnvResults {
     pub env: EnvKind,
     pub protocol: ReachConfig,
-    pub train_steps: u64,
+    /// Every method trained to its own convergence, with the planners on its latent.
     pub rows: Vec<Row>,
+    /// The equal-budget comparison's wall-clock training seconds (ProCL's own).
+    pub equal_budget_seconds: Option<f64>,
+    pub equal_budget: Vec<BudgetRow>,
+    pub curves: Vec<LearningCurve>,
 }
 
 /// One cell of the latent-noise ablation.
@@ -526,6 +664,8 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
         let protocol = config.protocol(env);
         let mut rows = vec![];
         let mut oracle = None;
+        let budget_seconds = config.equal_budget_seconds(env);
+        let (mut curves, mut equal_budget) = (vec![], vec![]);
         for method in &config.methods {
             let run = config.run(env, *method);
             let Some(report) = read_eval(&run).filter(|r| r.protocol == protocol) else {
@@ -561,8 +701,14 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                 pushes_away_share: diagnostics.as_ref().and_then(|d| d.pushes_away_share),
                 locally_unstable_share: diagnostics.as_ref().and_then(|d| d.locally_unstable_share),
                 train_seconds: training_seconds(&run),
-                curve: latent,
+                train_steps: crate::read_checkpoint_meta(&run.checkpoint())
+                    .ok()
+                    .map(|m| m.step),
+                curve: latent.clone(),
             });
+            let (curve, budget_row) = learning_curve(&run, &latent, &protocol, budget_seconds);
+            curves.push(curve);
+            equal_budget.extend(budget_row);
             for plan in planned {
                 rows.push(Row {
                     method: plan.method.clone(),
@@ -581,6 +727,7 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                     pushes_away_share: None,
                     locally_unstable_share: None,
                     train_seconds: None,
+                    train_steps: None,
                     curve: plan,
                 });
             }
@@ -600,14 +747,17 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
                 pushes_away_share: None,
                 locally_unstable_share: None,
                 train_seconds: None,
+                train_steps: None,
                 curve: oracle,
             });
         }
         envs.push(EnvResults {
             env,
             protocol,
-            train_steps: budget.train_steps,
             rows,
+            equal_budget_seconds: budget_seconds,
+            equal_budget,
+            curves,
         });
     }
     let protocol = config.protocol(EnvKind::PointMass);
@@ -642,9 +792,62 @@ fn summarise(config: &ExperimentConfig, times: &StageTimes) -> Summary {
     }
 }
 
+/// The learning curve of `run` (its evaluated snapshots, then its final weights, whose
+/// evaluation is `last`) and its row of the equal-budget comparison.
+fn learning_curve(
+    run: &RunPaths,
+    last: &MethodSummary,
+    protocol: &ReachConfig,
+    budget_seconds: Option<f64>,
+) -> (LearningCurve, Option<BudgetRow>) {
+    let clock = training_clock(run).unwrap_or_default();
+    let point = |step: u64, eval: &MethodSummary| {
+        let k = clock.binary_search_by_key(&step, |(s, _)| *s).ok()?;
+        Some(CurvePoint {
+            step,
+            seconds: clock[k].1,
+            success_rate: eval.success_rate,
+            final_mean: eval.final_mean,
+            final_std: eval.final_std,
+        })
+    };
+    let snapshot_point = |step: u64| {
+        let report = read_eval(&run.snapshot(step)).filter(|r| &r.protocol == protocol)?;
+        point(step, report.methods.first()?)
+    };
+    let final_step = crate::read_checkpoint_meta(&run.checkpoint())
+        .ok()
+        .map(|m| m.step);
+    let mut points: Vec<CurvePoint> = curve_snapshots(run, budget_seconds)
+        .into_iter()
+        .filter_map(snapshot_point)
+        .collect();
+    points.extend(final_step.and_then(|step| point(step, last)));
+    let budget_row = budget_seconds.map(|budget| BudgetRow {
+        method: last.method.clone(),
+        point: within_budget(run, budget).and_then(|(step, _, is_final)| {
+            if is_final {
+                point(step, last)
+            } else {
+                snapshot_point(step)
+            }
+        }),
+    });
+    let curve = LearningCurve {
+        method: last.method.clone(),
+        points,
+    };
+    (curve, budget_row)
+}
+
 /// The main figure of `env` (every method's distance curve), relative to the experiment folder.
 fn reach_figure(env: EnvKind) -> String {
     format!("{}/reach_all.png", env.name())
+}
+
+/// The learning curves of `env`, relative to the experiment folder.
+fn learning_figure(env: EnvKind) -> String {
+    format!("{}/learning.png", env.name())
 }
 
 const ABLATION_FIGURE: &str = "point-mass/ablation.png";
@@ -665,6 +868,22 @@ fn write_outputs(config: &ExperimentConfig, summary: &Summary) -> Result<()> {
             results.protocol.success_threshold,
             &results.protocol.distance_unit,
         )?;
+        if !results.curves.is_empty() {
+            let curves: Vec<(String, Vec<(f64, f64)>)> = results
+                .curves
+                .iter()
+                .map(|c| {
+                    let points = c.points.iter().map(|p| (p.seconds, p.success_rate));
+                    (c.method.clone(), points.collect())
+                })
+                .collect();
+            save_learning_plot(
+                &config.out.join(learning_figure(results.env)),
+                &format!("{}: goals reached against training time", results.env),
+                &curves,
+                results.equal_budget_seconds,
+            )?;
+        }
     }
     let protocol = config.protocol(EnvKind::PointMass);
     let ablation_curves: Vec<MethodSummary> =
@@ -690,16 +909,17 @@ fn optional(value: Option<f64>, digits: usize) -> String {
     value.map_or("-".into(), |v| format!("{v:.digits$}"))
 }
 
-/// The results table as Markdown (README) rows: env, method, success, final distance,
-/// control time.
+/// The results tables as Markdown (README): every method trained to its own convergence
+/// (env, method, success, final distance, control time, training), then every method at the
+/// equal training budget.
 pub fn markdown_table(summary: &Summary) -> String {
     let mut md = String::from(
-        "| environment | method | success | final distance | control step p50 (us) | step time / PD or PID | R^2 of q from h | training (s) |\n|---|---|---|---|---|---|---|---|\n",
+        "| environment | method | success | final distance | control step p50 (us) | step time / PD or PID | R^2 of q from h | training steps | training (s) |\n|---|---|---|---|---|---|---|---|---|\n",
     );
     for results in &summary.envs {
         for row in &results.rows {
             md.push_str(&format!(
-                "| {} | {} | {:.0}% | {:.4} +- {:.4} {} | {} | {} | {} | {} |\n",
+                "| {} | {} | {:.0}% | {:.4} +- {:.4} {} | {} | {} | {} | {} | {} |\n",
                 results.env,
                 row.method,
                 100.0 * row.success_rate,
@@ -710,11 +930,67 @@ pub fn markdown_table(summary: &Summary) -> String {
                 row.control_time_vs_feedback
                     .map_or("-".into(), |x| format!("{x:.1}x")),
                 optional(row.linear_r2, 3),
+                row.train_steps.map_or("-".into(), |s| s.to_string()),
                 optional(row.train_seconds, 0),
             ));
         }
     }
+    md.push_str(&format!("\n{}", budget_markdown(summary)));
     md
+}
+
+/// The equal-budget comparison as a Markdown table (empty without one).
+fn budget_markdown(summary: &Summary) -> String {
+    let mut md = String::new();
+    for results in &summary.envs {
+        let Some(budget) = results.equal_budget_seconds else {
+            continue;
+        };
+        for row in &results.equal_budget {
+            let cells = match &row.point {
+                Some(p) => format!(
+                    "{} | {:.0} | {:.0}% | {:.4} +- {:.4} {}",
+                    p.step,
+                    p.seconds,
+                    100.0 * p.success_rate,
+                    p.final_mean,
+                    p.final_std,
+                    results.protocol.distance_unit
+                ),
+                None => "- | - | no weights within the budget | -".into(),
+            };
+            md.push_str(&format!(
+                "| {} | {budget:.0} | {} | {cells} |\n",
+                results.env, row.method
+            ));
+        }
+    }
+    if md.is_empty() {
+        return md;
+    }
+    format!(
+        "| environment | budget (s) | method | step | training (s) | success | final distance |\n|---|---|---|---|---|---|---|\n{md}"
+    )
+}
+
+/// A Markdown table (header, rule, rows) as an HTML table.
+fn html_table(markdown: &str) -> String {
+    let cells = |line: &str| -> Vec<String> {
+        let line = line.trim().trim_start_matches('|').trim_end_matches('|');
+        line.split('|')
+            .map(|cell| cell.trim().replace("+-", "&plusmn;"))
+            .collect()
+    };
+    let mut lines = markdown.lines().filter(|l| !l.trim().is_empty());
+    let header = lines.next().map(cells).unwrap_or_default();
+    let mut html = format!("<table><tr><th>{}</th></tr>\n", header.join("</th><th>"));
+    for line in lines.skip(1) {
+        html.push_str(&format!(
+            "<tr><td>{}</td></tr>\n",
+            cells(line).join("</td><td>")
+        ));
+    }
+    html + "</table>"
 }
 
 fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
@@ -723,7 +999,7 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
     for results in &summary.envs {
         for row in &results.rows {
             table.push_str(&format!(
-                "<tr><td>{}</td><td>{}</td><td>{:.0}%</td><td>{:.4} &plusmn; {:.4} {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
+                "<tr><td>{}</td><td>{}</td><td>{:.0}%</td><td>{:.4} &plusmn; {:.4} {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
                 results.env,
                 row.method,
                 100.0 * row.success_rate,
@@ -738,27 +1014,41 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
                 optional(row.knn_r2, 3),
                 optional(row.pushes_away_share.map(|x| 100.0 * x), 1),
                 optional(row.locally_unstable_share.map(|x| 100.0 * x), 1),
+                row.train_steps.map_or("-".into(), |s| s.to_string()),
                 optional(row.train_seconds, 0),
             ));
         }
     }
     body.push_str(&format!(
-        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset for the same number of steps; CEM and iLQR plan through the ProCL and PC3 runs' learned dynamics, on the same latents as their PD.</p>\
-<table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>step time / PD or PID</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>locally unstable cells (%)</th><th>training (s)</th></tr>\n{table}</table>\n",
+        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset to its own convergence (its preset's steps, or fewer where its stopping rule ends it); CEM and iLQR plan through the ProCL and PC3 runs' learned dynamics, on the same latents as their PD.</p>\
+<table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>step time / PD or PID</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>locally unstable cells (%)</th><th>training steps</th><th>training (s)</th></tr>\n{table}</table>\n",
         config.eval_episodes
     ));
+    let budget = budget_markdown(summary);
+    if !budget.is_empty() {
+        body.push_str(&format!(
+            "<h2>Equal training budget</h2><p>Every method's latest weights trained within the wall-clock time ProCL took to its own convergence on the same machine (snapshots every few steps), evaluated on the same goals.</p>{}\n",
+            html_table(&budget)
+        ));
+    }
     for results in &summary.envs {
         if results.rows.is_empty() {
             continue;
         }
         let env = results.env;
         body.push_str(&format!(
-            "<h2>{env}</h2><p>{} training steps; success threshold {} {}.</p><img src=\"{}\">\n<h3>Latent trajectories and latent maps</h3>\n",
-            results.train_steps,
+            "<h2>{env}</h2><p>Success threshold {} {}.</p><img src=\"{}\">\n",
             results.protocol.success_threshold,
             results.protocol.distance_unit,
             reach_figure(env)
         ));
+        if !results.curves.is_empty() {
+            body.push_str(&format!(
+                "<h3>Learning curves</h3><p>Goals reached by the weights kept during training, against wall-clock training time.</p><img src=\"{}\">\n",
+                learning_figure(env)
+            ));
+        }
+        body.push_str("<h3>Latent trajectories and latent maps</h3>\n");
         for row in &results.rows {
             if let Some(run) = &row.run {
                 let run = RunPaths::new(run);
@@ -870,16 +1160,12 @@ pub fn update_readme(
     std::fs::create_dir_all(&figure_dir).map_err(|e| Error::io(&figure_dir, e))?;
     let mut section = format!(
         "{README_BEGIN}\n<!-- written by `procl experiment paper --readme README.md`; edits here are overwritten -->\n\n\
-{} evaluation episodes per method, seed {}, training steps per environment: {}. \
+{} evaluation episodes per method, seed {}. The first table trains every method to its own \
+convergence (its preset's steps, or fewer where its stopping rule ends it); the second evaluates \
+every method's latest weights trained within the wall-clock time ProCL took, on the same machine. \
 Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
         config.eval_episodes,
         summary.seed,
-        summary
-            .envs
-            .iter()
-            .map(|e| format!("{} {}", e.env, e.train_steps))
-            .collect::<Vec<_>>()
-            .join(", "),
         summary.total_seconds,
         markdown_table(summary)
     );
@@ -921,21 +1207,31 @@ Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
         ));
     }
     for results in &summary.envs {
-        let source = config.out.join(reach_figure(results.env));
-        if results.rows.is_empty() || !source.exists() {
-            continue;
+        let figures_of_env = [
+            (reach_figure(results.env), "reach", "distance to goal"),
+            (
+                learning_figure(results.env),
+                "learning",
+                "goals reached against training time",
+            ),
+        ];
+        for (figure, suffix, alt) in figures_of_env {
+            let source = config.out.join(figure);
+            if results.rows.is_empty() || !source.exists() {
+                continue;
+            }
+            let name = format!("{}_{suffix}.png", results.env.name());
+            let target = figure_dir.join(&name);
+            let bytes = std::fs::read(&source).map_err(|e| Error::io(&source, e))?;
+            crate::write_atomically(&target, true, |w| {
+                std::io::Write::write_all(w, &bytes).map_err(|e| Error::io(&target, e))
+            })?;
+            section.push_str(&format!(
+                "![{alt}, {}]({})\n\n",
+                results.env,
+                figures.join(&name).display()
+            ));
         }
-        let name = format!("{}_reach.png", results.env.name());
-        let target = figure_dir.join(&name);
-        let bytes = std::fs::read(&source).map_err(|e| Error::io(&source, e))?;
-        crate::write_atomically(&target, true, |w| {
-            std::io::Write::write_all(w, &bytes).map_err(|e| Error::io(&target, e))
-        })?;
-        section.push_str(&format!(
-            "![distance to goal, {}]({})\n\n",
-            results.env,
-            figures.join(&name).display()
-        ));
     }
     section.push_str(README_END);
     let updated = format!(
@@ -947,4 +1243,72 @@ Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
     crate::write_atomically(readme, true, |w| {
         std::io::Write::write_all(w, updated.as_bytes()).map_err(|e| Error::io(readme, e))
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn curve_indices_grow_by_at_most_half_and_end_at_the_last_snapshot() {
+        assert_eq!(curve_indices(0), Vec::<usize>::new());
+        assert_eq!(curve_indices(1), [1]);
+        assert_eq!(curve_indices(5), [1, 2, 3, 4, 5]);
+        assert_eq!(curve_indices(12), [1, 2, 3, 4, 6, 8, 12]);
+        assert_eq!(
+            curve_indices(80),
+            [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 80]
+        );
+    }
+
+    /// A run folder with a checkpoint after `last` steps, snapshots at `snapshots` and a
+    /// metrics.csv whose clock restarts at `resumed_at` (a resumed run), a second a step.
+    fn fake_run(dir: &Path, last: u64, snapshots: &[u64], resumed_at: u64) -> RunPaths {
+        let run = RunPaths::new(dir);
+        let write_weights = |run: &RunPaths, step| {
+            std::fs::create_dir_all(&run.dir).unwrap();
+            let model = crate::model::ModelConfig::for_action_dim(2)
+                .init(0, &crate::model::cpu_device())
+                .unwrap();
+            let meta = crate::train::checkpoint::CheckpointMeta::at(step);
+            crate::train::checkpoint::save_checkpoint(&run.checkpoint(), &model, None, &meta)
+                .unwrap();
+        };
+        write_weights(&run, last);
+        for step in snapshots {
+            write_weights(&run.snapshot(*step), *step);
+        }
+        // An unfinished snapshot (no weights yet) is not one.
+        std::fs::create_dir_all(run.dir.join("snapshots/step-000099")).unwrap();
+        let mut csv = String::from("step,total,seconds\n");
+        for step in 1..=last {
+            let seconds = if step > resumed_at {
+                step - resumed_at
+            } else {
+                step
+            };
+            csv.push_str(&format!("{step},0.5,{seconds}.000\n"));
+        }
+        std::fs::write(run.metrics(), csv).unwrap();
+        run
+    }
+
+    #[test]
+    fn the_equal_budget_takes_the_latest_weights_trained_within_it() {
+        let dir = tempfile::tempdir().unwrap();
+        // Resumed after step 5: the clock reads 1..5, then 1..5 again for steps 6..10.
+        let steps: Vec<u64> = (1..=10).collect();
+        let run = fake_run(dir.path(), 10, &steps, 5);
+        assert_eq!(run.snapshot_steps(), steps);
+        let clock = training_clock(&run).unwrap();
+        assert_eq!(clock[5], (6, 6.0));
+        assert_eq!(training_seconds(&run), Some(10.0));
+        assert_eq!(within_budget(&run, 7.5), Some((7, 7.0, false)));
+        assert_eq!(within_budget(&run, 10.0), Some((10, 10.0, true)));
+        assert_eq!(within_budget(&run, 0.5), None);
+        // The curve: snapshots 1, 2, 3, 4, 6, 8 and 9 of the nine before the final weights,
+        // and the budget's (step 7).
+        assert_eq!(curve_snapshots(&run, None), [1, 2, 3, 4, 6, 8, 9]);
+        assert_eq!(curve_snapshots(&run, Some(7.5)), [1, 2, 3, 4, 6, 7, 8, 9]);
+    }
 }

@@ -106,10 +106,12 @@ pub fn shrink_networks(config: &mut TrainConfig) {
     }
 }
 
-/// Whether the run's checkpoint holds `steps` training steps (`metrics.csv` can run ahead of
-/// it: its row for a step is written before that step's checkpoint).
+/// Whether the run's checkpoint holds `steps` training steps, or its stopping rule ended it
+/// sooner (`metrics.csv` can run ahead of the checkpoint: its row for a step is written before
+/// that step's checkpoint).
 fn is_complete(run: &RunPaths, steps: u64) -> bool {
-    crate::read_checkpoint_meta(&run.checkpoint()).is_ok_and(|meta| meta.step == steps)
+    crate::read_checkpoint_meta(&run.checkpoint())
+        .is_ok_and(|meta| meta.step == steps || meta.stopped_early)
 }
 
 /// Trains `config` into `run`: reuses a finished run of the same configuration, resumes an
@@ -143,22 +145,32 @@ pub fn train_or_reuse(
     Ok(Outcome::Ran)
 }
 
-/// Wall-clock training seconds of a run over every invocation that trained it (`metrics.csv`'s
-/// `seconds` restarts from 0 on each resume), or `None` without metrics.
+/// Wall-clock training seconds of a run over every invocation that trained it, or `None`
+/// without metrics.
 pub fn training_seconds(run: &RunPaths) -> Option<f64> {
+    let clock = training_clock(run)?;
+    Some(clock.last().map_or(0.0, |(_, seconds)| *seconds))
+}
+
+/// `(step, wall-clock training seconds up to and including it)` for every step in the run's
+/// `metrics.csv`, over every invocation that trained it (the file's `seconds` column restarts
+/// from 0 on each resume), or `None` without metrics.
+pub fn training_clock(run: &RunPaths) -> Option<Vec<(u64, f64)>> {
     let text = std::fs::read_to_string(run.metrics()).ok()?;
-    let (mut total, mut last) = (0.0, 0.0);
-    for seconds in text
-        .lines()
-        .skip(1)
-        .filter_map(|l| l.rsplit(',').next()?.parse::<f64>().ok())
-    {
+    let (mut before, mut last) = (0.0, 0.0);
+    let mut clock = vec![];
+    for (step, seconds) in text.lines().skip(1).filter_map(|line| {
+        let step = line.split(',').next()?.parse::<u64>().ok()?;
+        let seconds = line.rsplit(',').next()?.parse::<f64>().ok()?;
+        Some((step, seconds))
+    }) {
         if seconds < last {
-            total += last;
+            before += last;
         }
         last = seconds;
+        clock.push((step, before + seconds));
     }
-    Some(total + last)
+    Some(clock)
 }
 
 /// Whether `output` (an evaluation, tracking or diagnostics file of `run`) was written after

@@ -177,6 +177,20 @@ struct StoredMeta {
 pub struct CheckpointMeta {
     /// Training steps completed.
     pub step: u64,
+    /// The objective's stopping rule ended the run here, before its configured steps: the run
+    /// is finished, and `--resume` has nothing to continue.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub stopped_early: bool,
+}
+
+impl CheckpointMeta {
+    /// A checkpoint after `step` steps of a run that goes on (or ends at its configured steps).
+    pub fn at(step: u64) -> Self {
+        Self {
+            step,
+            stopped_early: false,
+        }
+    }
 }
 
 /// Writes model weights (and Adam state, if given) to `path` atomically, replacing it.

@@ -102,6 +102,10 @@ pub struct TrainConfig {
     pub learning_rate: f64,
     /// Save a checkpoint every this many steps (and at the end).
     pub checkpoint_every: u64,
+    /// Every this many steps, also keep the weights in `snapshots/step-NNNNNN/`, a run folder
+    /// that `procl eval --run` accepts: the points of a learning curve (0: none).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub snapshot_every: u64,
     /// Every this many steps, choose the latent's orientation from the window's training
     /// batches by `orientation_criterion` (0: off, the paper's training). See
     /// [`crate::model::ProclModel::reorient_latent`]; must divide `checkpoint_every`.
@@ -133,6 +137,10 @@ pub struct TrainConfig {
     /// the config.json of earlier runs still loads and compares equal).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub nvae: Option<NvaeConfig>,
+}
+
+fn is_zero(value: &u64) -> bool {
+    *value == 0
 }
 
 fn default_orientation_margin() -> f64 {
@@ -220,6 +228,7 @@ impl TrainConfig {
             batch_size: 128,
             learning_rate: 1e-3,
             checkpoint_every: 500,
+            snapshot_every: 0,
             orientation_search_every: 0,
             orientation_margin: default_orientation_margin(),
             orientation_streak: default_orientation_streak(),

@@ -279,6 +279,16 @@ fn run_training<O: Objective>(
         }
         run.check_same_data(record)?;
         let (m, a, meta) = load_checkpoint(&run.checkpoint(), model, device)?;
+        if meta.stopped_early {
+            return Err(Error::config(
+                "resume",
+                format!(
+                    "{} is finished: its stopping rule ended it after step {}",
+                    run.dir.display(),
+                    meta.step
+                ),
+            ));
+        }
         (model, adam, start) = (m, a, meta.step);
         truncate_metrics(&run.metrics(), start, &metrics_header(O::METRICS))?;
     } else {
@@ -332,12 +342,14 @@ fn run_training<O: Objective>(
         last = Some(values);
         let plateaued = objective.stop_after(&model, step)?;
         if (step + 1) % config.checkpoint_every == 0 || step + 1 == config.steps || plateaued {
-            save_checkpoint(
-                &run.checkpoint(),
-                &model,
-                Some(&adam),
-                &CheckpointMeta { step: step + 1 },
-            )?;
+            let meta = CheckpointMeta {
+                stopped_early: plateaued && step + 1 < config.steps,
+                ..CheckpointMeta::at(step + 1)
+            };
+            save_checkpoint(&run.checkpoint(), &model, Some(&adam), &meta)?;
+        }
+        if config.snapshot_every > 0 && (step + 1).is_multiple_of(config.snapshot_every) {
+            save_snapshot(run, step + 1, &model)?;
         }
         if plateaued {
             return Ok(TrainSummary {
@@ -365,6 +377,25 @@ fn run_training<O: Objective>(
         last,
         seconds: clock.elapsed().as_secs_f64(),
     })
+}
+
+/// Keeps the weights after `step` steps in the run's snapshot folder for that step, with the
+/// run's `config.json` and `data.json` beside them so that the folder evaluates as a run.
+fn save_snapshot<M: Module>(run: &RunPaths, step: u64, model: &M) -> Result<()> {
+    let snapshot = run.snapshot(step);
+    std::fs::create_dir_all(&snapshot.dir).map_err(|e| Error::io(&snapshot.dir, e))?;
+    for (from, to) in [
+        (run.config(), snapshot.config()),
+        (run.data_record(), snapshot.data_record()),
+    ] {
+        std::fs::copy(&from, &to).map_err(|e| Error::io(&to, e))?;
+    }
+    save_checkpoint(
+        &snapshot.checkpoint(),
+        model,
+        None,
+        &CheckpointMeta::at(step),
+    )
 }
 
 /// What a run stopped after `steps_done` steps keeps: its last periodic checkpoint, the one it

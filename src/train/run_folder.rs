@@ -37,6 +37,28 @@ impl RunPaths {
         self.dir.join("data.json")
     }
 
+    /// The run folder of the weights kept after `step` steps (`snapshot_every`).
+    pub fn snapshot(&self, step: u64) -> RunPaths {
+        RunPaths::new(self.dir.join("snapshots").join(format!("step-{step:06}")))
+    }
+
+    /// The steps of the run's finished snapshots, in increasing order (none without any).
+    pub fn snapshot_steps(&self) -> Vec<u64> {
+        let Ok(entries) = std::fs::read_dir(self.dir.join("snapshots")) else {
+            return vec![];
+        };
+        let mut steps: Vec<u64> = entries
+            .filter_map(|entry| {
+                let name = entry.ok()?.file_name();
+                let step = name.to_str()?.strip_prefix("step-")?.parse().ok()?;
+                // The weights are written last: a folder without them is unfinished.
+                self.snapshot(step).checkpoint().exists().then_some(step)
+            })
+            .collect();
+        steps.sort_unstable();
+        steps
+    }
+
     /// Refuses to resume on another dataset than the one the run started on (runs without a
     /// `data.json` are not checked).
     pub fn check_same_data(&self, record: &DataRecord) -> Result<()> {

@@ -30,9 +30,9 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     let config = ExperimentConfig::quick(&out);
     let (summary, finished) = run(&config, false);
 
-    // 3 envs x (collect + 3 methods x (train + eval) + CEM and iLQR on ProCL and PC3), 2
-    // ablation runs x 2, demonstrate, track.
-    assert_eq!(finished.len(), 39, "{finished:?}");
+    // 3 envs x (collect + 3 methods x (train + eval + learning curve) + CEM and iLQR on ProCL
+    // and PC3), 2 ablation runs x 2, demonstrate, track.
+    assert_eq!(finished.len(), 48, "{finished:?}");
     assert!(finished.iter().all(|(_, o)| *o == Outcome::Ran));
     let envs: Vec<EnvKind> = summary.envs.iter().map(|e| e.env).collect();
     assert_eq!(envs, [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch]);
@@ -90,6 +90,36 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
             }
         }
         assert!(out.join(results.env.name()).join("reach_all.png").exists());
+        assert!(out.join(results.env.name()).join("learning.png").exists());
+        // Snapshots every 2 of 6 steps: the curve holds steps 2 and 4, then the final weights.
+        let curves: Vec<(&str, Vec<u64>)> = results
+            .curves
+            .iter()
+            .map(|c| (c.method.as_str(), c.points.iter().map(|p| p.step).collect()))
+            .collect();
+        assert_eq!(
+            curves,
+            [
+                ("ProCL + PD", vec![2, 4, 6]),
+                ("PC3 + PD", vec![2, 4, 6]),
+                ("NewtonianVAE + PID", vec![2, 4, 6])
+            ],
+            "{}",
+            results.env
+        );
+        for curve in &results.curves {
+            assert!(curve.points.windows(2).all(|w| w[0].seconds < w[1].seconds));
+        }
+        // The equal budget is ProCL's own training time, so ProCL's row is its final weights.
+        let budget = results.equal_budget_seconds.unwrap();
+        let procl = &results.equal_budget[0];
+        assert_eq!(procl.method, "ProCL + PD");
+        let point = procl.point.as_ref().unwrap();
+        assert_eq!((point.step, point.seconds), (6, budget));
+        assert_eq!(results.equal_budget.len(), 3);
+        for row in &results.equal_budget {
+            assert!(row.point.as_ref().is_none_or(|p| p.seconds <= budget));
+        }
     }
     let eps: Vec<f64> = summary
         .ablation
@@ -101,7 +131,7 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     assert_eq!((tracking.env, tracking.demonstrations), (EnvKind::Fetch, 1));
     assert!(out.join("point-mass/ablation.png").exists());
     assert!(out.join("fetch/procl/track.png").exists());
-    assert_eq!(summary.stage_seconds.len(), 39);
+    assert_eq!(summary.stage_seconds.len(), 48);
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     for needle in [
         "fetch/reach_all.png",
@@ -110,6 +140,8 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
         "point-mass/ablation.png",
         "reacher/pc3/latent_traj.png",
         "pairs PD pushes away",
+        "Equal training budget",
+        "reacher/learning.png",
     ] {
         assert!(html.contains(needle), "{needle}");
     }
@@ -121,7 +153,7 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     let weights = out.join("reacher/procl/model.safetensors");
     let before = std::fs::read(&weights).unwrap();
     let (again, finished) = run(&config, false);
-    assert_eq!(finished.len(), 39);
+    assert_eq!(finished.len(), 48);
     assert!(
         finished.iter().all(|(_, o)| *o == Outcome::Reused),
         "{finished:?}"
@@ -183,6 +215,7 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
     assert!(!text.contains("old table") && text.contains("| fetch | ProCL + PD |"));
     assert!(text.contains("](img/point-mass_reach.png)"));
     assert!(dir.path().join("img/fetch_reach.png").exists());
+    assert!(text.contains("](img/reacher_learning.png)") && text.contains("| budget (s) |"));
     for (text, expected) in [
         ("no marks\n".to_string(), "has no"),
         (

@@ -147,10 +147,31 @@ fn a_plateaued_validation_elbo_ends_the_run_with_a_checkpoint() {
     assert_eq!(metrics(dir.path()).len(), 4);
     let validation = std::fs::read_to_string(run.validation()).unwrap();
     assert_eq!(validation.lines().count(), 3, "{validation}");
-    assert!(run.checkpoint().exists());
-    // Resuming the plateaued run reads the rule's state back and stops at the next validation.
-    let summary = train(&config, &data, &run, true, &cpu_device(), |_, _| {}).unwrap();
-    assert_eq!(summary.steps_done, 6);
+    let meta = procl::read_checkpoint_meta(&run.checkpoint()).unwrap();
+    assert!(meta.step == 4 && meta.stopped_early);
+    // The rule ended the run: there is nothing to resume.
+    let err = train_error(&config, &data, dir.path(), true);
+    assert!(err.contains("finished") && err.contains("step 4"), "{err}");
+    // A run interrupted after the first validation reads the rule's state back on resume, and
+    // stops at the second, as the uninterrupted run did (without the state it would count
+    // the second validation as its first, and go on).
+    let other = dir.path().join("interrupted");
+    let interrupted = TrainConfig {
+        checkpoint_every: 2,
+        ..config.clone()
+    };
+    let paths = RunPaths::new(&other);
+    let stop_at_2 = |step: u64, _: &procl::losses::StepValues| {
+        if step == 2 {
+            std::ops::ControlFlow::Break(())
+        } else {
+            std::ops::ControlFlow::Continue(())
+        }
+    };
+    procl::train::train_interruptible(&interrupted, &data, &paths, false, &cpu_device(), stop_at_2)
+        .unwrap_err();
+    let summary = train(&interrupted, &data, &paths, true, &cpu_device(), |_, _| {}).unwrap();
+    assert_eq!(summary.steps_done, 4);
     // Patience without validation episodes is refused by name.
     let mut bad = config.clone();
     bad.nvae.as_mut().unwrap().validation_share = 0.0;

@@ -171,7 +171,7 @@ fn training_lowers_cpc_and_total_loss() {
         &cpu_device(),
     )
     .unwrap();
-    assert_eq!(meta, CheckpointMeta { step: steps });
+    assert_eq!(meta, CheckpointMeta::at(steps));
     assert_eq!(adam.step, steps);
 }
 
@@ -245,6 +245,38 @@ fn resumed_run_equals_uninterrupted_run() {
     assert_eq!(rows_a, rows_b, "metrics differ (seconds column ignored)");
 }
 
+#[test]
+fn a_snapshot_holds_the_weights_of_a_run_that_stopped_at_its_step() {
+    let data = point_mass_data();
+    let dir = tempfile::tempdir().unwrap();
+    let full = TrainConfig {
+        snapshot_every: 10,
+        ..tiny_config(20, 10)
+    };
+    let short = TrainConfig {
+        steps: 10,
+        snapshot_every: 0,
+        ..full.clone()
+    };
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    train_into(&full, &data, &a, false);
+    train_into(&short, &data, &b, false);
+    let run = RunPaths::new(&a);
+    assert_eq!(run.snapshot_steps(), [10, 20]);
+    // The snapshot is a run folder of its own: it loads as one, with the run's config.
+    let snapshot = run.snapshot(10);
+    let (config, _) = snapshot.load_model(&cpu_device()).unwrap();
+    assert_eq!(config, full);
+    let weights = |dir: &Path| {
+        let mut tensors = checkpoint_contents(dir).1;
+        tensors.retain(|name, _| name.starts_with("model."));
+        tensors
+    };
+    assert_eq!(weights(&snapshot.dir), weights(&b));
+    assert!(weights(&run.snapshot(20).dir) != weights(&b));
+    assert_eq!(weights(&run.snapshot(20).dir), weights(&a));
+}
+
 /// A few frames of the dataset as the network input.
 fn frame_batch(data: &Dataset) -> burn::tensor::Tensor<4> {
     let frames: Vec<&[u8]> = (0..6).map(|t| data.frame(t % 2, 3 * t)).collect();
@@ -269,14 +301,14 @@ fn checkpoint_round_trip_gives_identical_outputs() {
         .init(1, &device)
         .unwrap()
         .reorient_latent(&orientation);
-    save_checkpoint(&path, &saved, None, &CheckpointMeta { step: 7 }).unwrap();
+    save_checkpoint(&path, &saved, None, &CheckpointMeta::at(7)).unwrap();
 
     let fresh = config.init(2, &device).unwrap();
     let before = encode(&fresh, &data);
     let want = encode(&saved, &data);
     assert!(before != want, "different seeds gave the same encoder");
     let (loaded, adam, meta) = load_checkpoint(&path, fresh, &device).unwrap();
-    assert_eq!(meta, CheckpointMeta { step: 7 });
+    assert_eq!(meta, CheckpointMeta::at(7));
     assert_eq!(adam.step, 0);
     assert_eq!(encode(&loaded, &data), want);
     assert_eq!(loaded.latent_transform(), orientation.to_vec());
@@ -401,7 +433,7 @@ fn corrupt_or_missing_checkpoints_are_reported_with_the_file() {
         &good,
         &config.init(0, &device).unwrap(),
         None,
-        &CheckpointMeta { step: 1 },
+        &CheckpointMeta::at(1),
     )
     .unwrap();
     let whole = std::fs::read(&good).unwrap();
