@@ -495,8 +495,7 @@ fn within_budget(run: &RunPaths, budget_seconds: f64) -> Option<(u64, f64, bool)
         .into_iter()
         .filter_map(|step| Some((step, seconds_at(step)?, step == last)))
         // A hair of slack, so ProCL's own run counts as within its own time.
-        .filter(|(_, seconds, _)| *seconds <= budget_seconds * (1.0 + 1e-9))
-        .next_back()
+        .rfind(|(_, seconds, _)| *seconds <= budget_seconds * (1.0 + 1e-9))
 }
 
 /// The snapshot steps of `run` its learning curve evaluates: [`curve_indices`] of its
