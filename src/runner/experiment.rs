@@ -17,9 +17,9 @@ use crate::eval::{
     TRACK_FIGURE, TrackReport, save_learning_plot, save_reach_plot, track_run, write_diagnostics,
 };
 use crate::runner::stages::{
-    Outcome, collect_or_reuse, evaluate_or_reuse, evaluate_or_reuse_with, reach_protocol,
-    read_current, read_eval, read_eval_with, set_budget, shrink_networks, train_or_reuse,
-    training_clock, training_seconds,
+    Outcome, collect_or_reuse, evaluate_or_reuse, evaluate_or_reuse_with, is_complete,
+    reach_protocol, read_current, read_eval, read_eval_with, set_budget, shrink_networks,
+    train_or_reuse, training_clock, training_seconds,
 };
 use crate::train::{Method, Preset, RunPaths, TrainConfig};
 
@@ -29,8 +29,8 @@ pub struct EnvBudget {
     pub env: EnvKind,
     pub transitions: usize,
     pub episode_len: usize,
-    /// Training steps of every method on this environment (`None`: each method's preset, which
-    /// trains it to its own convergence).
+    /// Training steps of every method on this environment (`None`: each method's own preset
+    /// budget).
     pub train_steps: Option<u64>,
     /// Steps between the weights kept for the learning curves and the equal-budget comparison.
     pub snapshot_every: u64,
@@ -159,10 +159,8 @@ impl ExperimentConfig {
     /// the ablation has no learning curves).
     fn ablation_config(&self, eps: f64) -> TrainConfig {
         let mut config = self.train_config(&self.envs[0], Method::Procl);
-        if config.loss.latent_noise_std != eps {
-            config.loss.latent_noise_std = eps;
-            config.snapshot_every = 0;
-        }
+        config.loss.latent_noise_std = eps;
+        config.snapshot_every = 0;
         config
     }
 
@@ -175,15 +173,16 @@ impl ExperimentConfig {
     }
 
     /// The training budget of the equal-budget comparison on `env`: the wall-clock seconds
-    /// ProCL's run took to its own convergence on this machine (`None` before it has trained,
-    /// or without ProCL among the methods).
+    /// ProCL's run took over its whole training budget (`None` before it has finished, or
+    /// without ProCL among the methods).
     fn equal_budget_seconds(&self, env: EnvKind) -> Option<f64> {
+        let budget = self.envs.iter().find(|b| b.env == env)?;
         if !self.methods.contains(&Method::Procl) {
             return None;
         }
         let run = self.run(env, Method::Procl);
-        crate::read_checkpoint_meta(&run.checkpoint()).ok()?;
-        training_seconds(&run)
+        let steps = self.train_config(budget, Method::Procl).steps;
+        is_complete(&run, steps).then(|| training_seconds(&run))?
     }
 
     fn has_fetch(&self) -> bool {
@@ -461,18 +460,24 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
 }
 
 /// Indices (from 1) of the snapshots a learning curve evaluates out of `count`: 1, 2, 3, 4, 6,
-/// 8, 12, 16, ... (powers of two and three times them, each at most 1.5 times the last), so
-/// the points spread evenly over a log time axis, and the last one.
+/// 8, 12, 16, ... (the powers of two and 1.5 times them), so the points spread evenly over a
+/// log time axis, and the last one.
 fn curve_indices(count: usize) -> Vec<usize> {
-    let mut indices: Vec<usize> = (0..40)
-        .flat_map(|j| [1usize << j, 3usize << j])
-        .filter(|&k| k <= count)
-        .collect();
-    if count > 0 {
+    let mut indices = vec![];
+    let mut power = 1usize;
+    while power <= count {
+        indices.push(power);
+        if power >= 2 && power / 2 * 3 <= count {
+            indices.push(power / 2 * 3);
+        }
+        let Some(next) = power.checked_mul(2) else {
+            break;
+        };
+        power = next;
+    }
+    if count > 0 && indices.last() != Some(&count) {
         indices.push(count);
     }
-    indices.sort_unstable();
-    indices.dedup();
     indices
 }
 
@@ -608,7 +613,9 @@ pub struct LearningCurve {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct BudgetRow {
     pub method: String,
-    /// `None` when even the method's first snapshot took longer than the budget.
+    /// The step of those weights; `None` when even the method's first snapshot took longer.
+    pub step: Option<u64>,
+    /// Their evaluation; `None` until the run's curve stage has evaluated them.
     pub point: Option<CurvePoint>,
 }
 
@@ -617,7 +624,7 @@ pub struct BudgetRow {
 pub struct EnvResults {
     pub env: EnvKind,
     pub protocol: ReachConfig,
-    /// Every method trained to its own convergence, with the planners on its latent.
+    /// Every method trained on its own preset budget, with the planners on its latent.
     pub rows: Vec<Row>,
     /// The equal-budget comparison's wall-clock training seconds (ProCL's own).
     pub equal_budget_seconds: Option<f64>,
@@ -822,15 +829,19 @@ fn learning_curve(
         .filter_map(snapshot_point)
         .collect();
     points.extend(final_step.and_then(|step| point(step, last)));
-    let budget_row = budget_seconds.map(|budget| BudgetRow {
-        method: last.method.clone(),
-        point: within_budget(run, budget).and_then(|(step, _, is_final)| {
-            if is_final {
-                point(step, last)
-            } else {
-                snapshot_point(step)
-            }
-        }),
+    let budget_row = budget_seconds.map(|budget| {
+        let within = within_budget(run, budget);
+        BudgetRow {
+            method: last.method.clone(),
+            step: within.map(|(step, _, _)| step),
+            point: within.and_then(|(step, _, is_final)| {
+                if is_final {
+                    point(step, last)
+                } else {
+                    snapshot_point(step)
+                }
+            }),
+        }
     });
     let curve = LearningCurve {
         method: last.method.clone(),
@@ -908,7 +919,7 @@ fn optional(value: Option<f64>, digits: usize) -> String {
     value.map_or("-".into(), |v| format!("{v:.digits$}"))
 }
 
-/// The results tables as Markdown (README): every method trained to its own convergence
+/// The results tables as Markdown (README): every method trained on its own preset budget
 /// (env, method, success, final distance, control time, training), then every method at the
 /// equal training budget.
 pub fn markdown_table(summary: &Summary) -> String {
@@ -946,8 +957,8 @@ fn budget_markdown(summary: &Summary) -> String {
             continue;
         };
         for row in &results.equal_budget {
-            let cells = match &row.point {
-                Some(p) => format!(
+            let cells = match (&row.point, row.step) {
+                (Some(p), _) => format!(
                     "{} | {:.0} | {:.0}% | {:.4} +- {:.4} {}",
                     p.step,
                     p.seconds,
@@ -956,7 +967,8 @@ fn budget_markdown(summary: &Summary) -> String {
                     p.final_std,
                     results.protocol.distance_unit
                 ),
-                None => "- | - | no weights within the budget | -".into(),
+                (None, Some(step)) => format!("{step} | - | not evaluated yet | -"),
+                (None, None) => "- | - | no weights within the budget | -".into(),
             };
             md.push_str(&format!(
                 "| {} | {budget:.0} | {} | {cells} |\n",
@@ -1019,14 +1031,14 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
         }
     }
     body.push_str(&format!(
-        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset to its own convergence (its preset's steps, or fewer where its stopping rule ends it); CEM and iLQR plan through the ProCL and PC3 runs' learned dynamics, on the same latents as their PD.</p>\
+        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset for its own preset's steps (the NewtonianVAE's stopping rule can end it sooner); the learning curves below show where each levels off; CEM and iLQR plan through the ProCL and PC3 runs' learned dynamics, on the same latents as their PD.</p>\
 <table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>step time / PD or PID</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>locally unstable cells (%)</th><th>training steps</th><th>training (s)</th></tr>\n{table}</table>\n",
         config.eval_episodes
     ));
     let budget = budget_markdown(summary);
     if !budget.is_empty() {
         body.push_str(&format!(
-            "<h2>Equal training budget</h2><p>Every method's latest weights trained within the wall-clock time ProCL took to its own convergence on the same machine (snapshots every few steps), evaluated on the same goals.</p>{}\n",
+            "<h2>Equal training budget</h2><p>Every method's latest weights trained within the wall-clock time ProCL's run took, as the runs measured it while training (snapshots every few steps), evaluated on the same goals.</p>{}\n",
             html_table(&budget)
         ));
     }
@@ -1159,10 +1171,10 @@ pub fn update_readme(
     std::fs::create_dir_all(&figure_dir).map_err(|e| Error::io(&figure_dir, e))?;
     let mut section = format!(
         "{README_BEGIN}\n<!-- written by `procl experiment paper --readme README.md`; edits here are overwritten -->\n\n\
-{} evaluation episodes per method, seed {}. The first table trains every method to its own \
-convergence (its preset's steps, or fewer where its stopping rule ends it); the second evaluates \
-every method's latest weights trained within the wall-clock time ProCL took, on the same machine. \
-Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
+{} evaluation episodes per method, seed {}. The first table trains every method for its own \
+preset's steps (the NewtonianVAE's stopping rule can end it sooner); the second evaluates every \
+method's latest weights trained within the wall-clock time ProCL's run took, as the runs measured \
+it while training. Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
         config.eval_episodes,
         summary.seed,
         summary.total_seconds,

@@ -109,7 +109,7 @@ pub fn shrink_networks(config: &mut TrainConfig) {
 /// Whether the run's checkpoint holds `steps` training steps, or its stopping rule ended it
 /// sooner (`metrics.csv` can run ahead of the checkpoint: its row for a step is written before
 /// that step's checkpoint).
-fn is_complete(run: &RunPaths, steps: u64) -> bool {
+pub(crate) fn is_complete(run: &RunPaths, steps: u64) -> bool {
     crate::read_checkpoint_meta(&run.checkpoint())
         .is_ok_and(|meta| meta.step == steps || meta.stopped_early)
 }

@@ -341,15 +341,17 @@ fn run_training<O: Objective>(
         let flow = progress(step + 1, &values);
         last = Some(values);
         let plateaued = objective.stop_after(&model, step)?;
+        // Before the checkpoint: a run killed between the two resumes from the previous
+        // checkpoint and writes this snapshot again.
+        if config.snapshot_every > 0 && (step + 1).is_multiple_of(config.snapshot_every) {
+            save_snapshot(run, step + 1, &model)?;
+        }
         if (step + 1) % config.checkpoint_every == 0 || step + 1 == config.steps || plateaued {
             let meta = CheckpointMeta {
                 stopped_early: plateaued && step + 1 < config.steps,
                 ..CheckpointMeta::at(step + 1)
             };
             save_checkpoint(&run.checkpoint(), &model, Some(&adam), &meta)?;
-        }
-        if config.snapshot_every > 0 && (step + 1).is_multiple_of(config.snapshot_every) {
-            save_snapshot(run, step + 1, &model)?;
         }
         if plateaued {
             return Ok(TrainSummary {

@@ -113,7 +113,7 @@ fn quick_experiment_covers_every_env_and_method_and_resumes() {
         // The equal budget is ProCL's own training time, so ProCL's row is its final weights.
         let budget = results.equal_budget_seconds.unwrap();
         let procl = &results.equal_budget[0];
-        assert_eq!(procl.method, "ProCL + PD");
+        assert_eq!((procl.method.as_str(), procl.step), ("ProCL + PD", Some(6)));
         let point = procl.point.as_ref().unwrap();
         assert_eq!((point.step, point.seconds), (6, budget));
         assert_eq!(results.equal_budget.len(), 3);
