@@ -209,6 +209,10 @@ pub fn save_learning_plot(
             .configure_mesh()
             .x_desc("training time (s, wall clock)")
             .y_desc("goals reached (%)")
+            .x_labels(6)
+            .x_label_formatter(&|t| format!("{t:.0}"))
+            .y_label_formatter(&|p| format!("{p:.0}"))
+            .light_line_style(WHITE.mix(0.0))
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| e.to_string())?;
