@@ -364,7 +364,8 @@ fn run_stages(config: &ExperimentConfig, stages: &mut Stages) -> Result<()> {
             train_and_evaluate(stages, &name, &train_config, &data, &run, &protocol)?;
             let budget_seconds = config.equal_budget_seconds(env);
             stages.run(&format!("{name}/curve"), |progress| {
-                let steps = curve_snapshots(&run, budget_seconds);
+                let within = budget_seconds.and_then(|b| within_budget(&run, b));
+                let steps = curve_snapshots(&run, within);
                 let mut outcome = Outcome::Reused;
                 for (k, step) in steps.iter().enumerate() {
                     let (_, ran) = evaluate_or_reuse(&run.snapshot(*step), &protocol, |_| {})?;
@@ -487,26 +488,26 @@ fn curve_indices(count: usize) -> Vec<usize> {
 fn within_budget(run: &RunPaths, budget_seconds: f64) -> Option<(u64, f64, bool)> {
     let last = crate::read_checkpoint_meta(&run.checkpoint()).ok()?.step;
     let clock = training_clock(run)?;
-    let seconds_at = |step: u64| {
-        clock
-            .binary_search_by_key(&step, |(s, _)| *s)
-            .ok()
-            .map(|k| clock[k].1)
-    };
     let mut steps = run.snapshot_steps();
     steps.retain(|&step| step < last);
     steps.push(last);
     steps
         .into_iter()
-        .filter_map(|step| Some((step, seconds_at(step)?, step == last)))
+        .filter_map(|step| Some((step, seconds_at(&clock, step)?, step == last)))
         // A hair of slack, so ProCL's own run counts as within its own time.
         .rfind(|(_, seconds, _)| *seconds <= budget_seconds * (1.0 + 1e-9))
 }
 
+/// The training seconds at `step` on a run's [`training_clock`].
+fn seconds_at(clock: &[(u64, f64)], step: u64) -> Option<f64> {
+    let k = clock.binary_search_by_key(&step, |(s, _)| *s).ok()?;
+    Some(clock[k].1)
+}
+
 /// The snapshot steps of `run` its learning curve evaluates: [`curve_indices`] of its
-/// snapshots and the one [`within_budget`] picks, without the final checkpoint (the run's own
-/// evaluation).
-fn curve_snapshots(run: &RunPaths, budget_seconds: Option<f64>) -> Vec<u64> {
+/// snapshots and `within`, the weights [`within_budget`] picked (if a snapshot), without the
+/// final checkpoint (the run's own evaluation).
+fn curve_snapshots(run: &RunPaths, within: Option<(u64, f64, bool)>) -> Vec<u64> {
     let Ok(meta) = crate::read_checkpoint_meta(&run.checkpoint()) else {
         return vec![];
     };
@@ -519,7 +520,7 @@ fn curve_snapshots(run: &RunPaths, budget_seconds: Option<f64>) -> Vec<u64> {
         .into_iter()
         .map(|k| snapshots[k - 1])
         .collect();
-    if let Some((step, _, false)) = budget_seconds.and_then(|b| within_budget(run, b)) {
+    if let Some((step, _, false)) = within {
         steps.push(step);
     }
     steps.sort_unstable();
@@ -808,10 +809,9 @@ fn learning_curve(
 ) -> (LearningCurve, Option<BudgetRow>) {
     let clock = training_clock(run).unwrap_or_default();
     let point = |step: u64, eval: &MethodSummary| {
-        let k = clock.binary_search_by_key(&step, |(s, _)| *s).ok()?;
         Some(CurvePoint {
             step,
-            seconds: clock[k].1,
+            seconds: seconds_at(&clock, step)?,
             success_rate: eval.success_rate,
             final_mean: eval.final_mean,
             final_std: eval.final_std,
@@ -824,24 +824,22 @@ fn learning_curve(
     let final_step = crate::read_checkpoint_meta(&run.checkpoint())
         .ok()
         .map(|m| m.step);
-    let mut points: Vec<CurvePoint> = curve_snapshots(run, budget_seconds)
+    let within = budget_seconds.and_then(|b| within_budget(run, b));
+    let mut points: Vec<CurvePoint> = curve_snapshots(run, within)
         .into_iter()
         .filter_map(snapshot_point)
         .collect();
     points.extend(final_step.and_then(|step| point(step, last)));
-    let budget_row = budget_seconds.map(|budget| {
-        let within = within_budget(run, budget);
-        BudgetRow {
-            method: last.method.clone(),
-            step: within.map(|(step, _, _)| step),
-            point: within.and_then(|(step, _, is_final)| {
-                if is_final {
-                    point(step, last)
-                } else {
-                    snapshot_point(step)
-                }
-            }),
-        }
+    let budget_row = budget_seconds.map(|_| BudgetRow {
+        method: last.method.clone(),
+        step: within.map(|(step, _, _)| step),
+        point: within.and_then(|(step, _, is_final)| {
+            if is_final {
+                point(step, last)
+            } else {
+                snapshot_point(step)
+            }
+        }),
     });
     let curve = LearningCurve {
         method: last.method.clone(),
@@ -1320,6 +1318,7 @@ mod tests {
         // The curve: snapshots 1, 2, 3, 4, 6, 8 and 9 of the nine before the final weights,
         // and the budget's (step 7).
         assert_eq!(curve_snapshots(&run, None), [1, 2, 3, 4, 6, 8, 9]);
-        assert_eq!(curve_snapshots(&run, Some(7.5)), [1, 2, 3, 4, 6, 7, 8, 9]);
+        let within = within_budget(&run, 7.5);
+        assert_eq!(curve_snapshots(&run, within), [1, 2, 3, 4, 6, 7, 8, 9]);
     }
 }
