@@ -8,7 +8,7 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use procl::data::{CollectConfig, collect};
-use procl::envs::EnvKind;
+use procl::envs::{EnvConfig, EnvKind};
 use procl::eval::ReachConfig;
 use procl::runner::ablate::GridWork;
 use procl::runner::demo::DemoConfig;
@@ -31,9 +31,18 @@ struct Cli {
 enum Command {
     /// Collect a random-control dataset to an .npz file.
     Collect {
-        /// Environment: point-mass | reacher | fetch.
+        /// Environment: point-mass | reacher | fetch (or the one --env-config configures).
+        #[arg(long, required_unless_present = "env_config")]
+        env: Option<String>,
+        /// A TOML file configuring a variant of the environment: one table, [point-mass],
+        /// [reacher] or [fetch], with the fields that differ from its defaults (for the
+        /// reacher, e.g. base_m, link1_length_m, fingertip_m, arm_rgb). The dataset records it.
         #[arg(long)]
-        env: String,
+        env_config: Option<PathBuf>,
+        /// Record the data as custom: `procl train` then uses the recipe for data from
+        /// elsewhere, and `procl eval` still runs in the recorded simulator.
+        #[arg(long)]
+        as_custom: bool,
         /// Number of transitions (default: the paper's dataset size for the env, 10,000; fetch 50,000).
         #[arg(long)]
         transitions: Option<usize>,
@@ -316,6 +325,27 @@ impl Progress {
 }
 
 /// A share as a percentage with two decimals, `-` when undefined.
+/// The environment configuration of `--env` and `--env-config` (which must agree when both are
+/// given): the file's variant, or the named environment's defaults.
+fn resolve_env_config(env: Option<&str>, file: Option<&Path>) -> anyhow::Result<EnvConfig> {
+    let named: Option<EnvKind> = env.map(str::parse).transpose()?;
+    let Some(file) = file else {
+        let kind = named.context("--env or --env-config is required")?;
+        return Ok(kind.into());
+    };
+    let config = EnvConfig::load(file)?;
+    if let Some(kind) = named
+        && kind != config.kind()
+    {
+        anyhow::bail!(
+            "{} configures {}, not --env {kind}",
+            file.display(),
+            config.kind()
+        );
+    }
+    Ok(config)
+}
+
 fn percent(share: Option<f64>) -> String {
     share.map_or("-".into(), |x| format!("{:.2}%", 100.0 * x))
 }
@@ -324,16 +354,21 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Collect {
             env,
+            env_config,
+            as_custom,
             transitions,
             episode_len,
             seed,
             out,
             force,
         } => {
-            let env: EnvKind = env.parse()?;
+            let env_config = resolve_env_config(env.as_deref(), env_config.as_deref())?;
+            let env = env_config.kind();
             procl::check_writable(&out, force)?;
             let defaults = CollectConfig::new(env, seed);
             let config = CollectConfig {
+                env: env_config,
+                as_custom,
                 transitions: transitions.unwrap_or(defaults.transitions),
                 episode_len: episode_len.unwrap_or(defaults.episode_len),
                 ..defaults
@@ -342,8 +377,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let data = collect(&config, |done| bar.set_position(done as u64))?;
             bar.finish_and_clear();
             data.save(&out, force)?;
+            let variant = match (config.env.is_default(), as_custom) {
+                (true, false) => "",
+                (false, false) => " (a variant)",
+                (true, true) => ", recorded as custom data",
+                (false, true) => " (a variant), recorded as custom data",
+            };
             println!(
-                "wrote {} ({} episodes x {} steps of {env}, seed {seed})",
+                "wrote {} ({} episodes x {} steps of {env}{variant}, seed {seed})",
                 out.display(),
                 data.episodes(),
                 data.steps()
@@ -378,6 +419,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     .config_dim()
                     .map_or("no true states".into(), |dq| format!("dq {dq}"))
             );
+            if let Some(config) = &m.env_config {
+                println!(
+                    "simulator: {} with other parameters (evaluation runs in it):\n{}",
+                    config.kind(),
+                    toml::to_string(config)?.trim_end()
+                );
+            }
         }
         Command::Train {
             data,
@@ -487,7 +535,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     }
                 ),
             };
-            let mut protocol = ReachConfig::for_env(config.simulated_env(&run)?, seed);
+            let mut protocol = ReachConfig::for_env(paths.simulator(&config)?.kind(), seed);
             if episodes == 0 {
                 anyhow::bail!("--episodes must be at least 1");
             }

@@ -6,14 +6,18 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta};
-use crate::envs::{Env, EnvKind, FRAME_PX, Frame, State};
+use crate::envs::{Env, EnvConfig, EnvKind, FRAME_PX, Frame, State};
 use crate::error::{Error, Result};
 
 /// What to collect.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CollectConfig {
-    /// Environment to drive.
-    pub env: EnvKind,
+    /// Environment to drive, with its configuration (the default, or a variant).
+    pub env: EnvConfig,
+    /// Record the data as custom: training then uses the recipe for data from elsewhere,
+    /// which knows nothing of the environment, while the metadata keeps the configuration
+    /// for evaluation in the simulator.
+    pub as_custom: bool,
     /// Total transitions (episodes x steps per episode).
     pub transitions: usize,
     /// Steps per episode `T`; the dataset holds `T + 1` frames per episode.
@@ -29,7 +33,8 @@ impl CollectConfig {
     /// (reacher: 10 steps).
     pub fn new(env: EnvKind, seed: u64) -> Self {
         Self {
-            env,
+            env: env.into(),
+            as_custom: false,
             transitions: match env {
                 EnvKind::PointMass | EnvKind::Reacher => 10_000,
                 EnvKind::Fetch => 50_000,
@@ -47,6 +52,14 @@ impl CollectConfig {
             seed,
             max_hold_steps: 5,
         }
+    }
+
+    /// The dataset metadata's `env` and `env_config` for this collection: the environment, or
+    /// `custom` with `as_custom`; the configuration where `env` does not imply it.
+    pub fn recorded_env(&self) -> (Option<EnvKind>, Option<EnvConfig>) {
+        let env = (!self.as_custom).then(|| self.env.kind());
+        let config = (self.as_custom || !self.env.is_default()).then(|| self.env.clone());
+        (env, config)
     }
 
     /// Number of episodes, after checking that the sizes are usable.
@@ -131,6 +144,7 @@ impl Recording {
             seed,
             source,
             procl_version: env!("CARGO_PKG_VERSION").into(),
+            env_config: None,
         };
         Dataset::new(meta, self.obs, self.actions, Some(self.states))
     }
@@ -140,6 +154,7 @@ impl Recording {
 pub fn collect(config: &CollectConfig, mut progress: impl FnMut(usize)) -> Result<Dataset> {
     let episodes = config.episodes()?;
     let steps = config.episode_len.min(config.transitions);
+    config.env.validate()?;
     let mut env = config.env.make();
     let du = env.action_dim();
     let mut recording = Recording::new(env.as_ref(), episodes, steps);
@@ -171,7 +186,9 @@ pub fn collect(config: &CollectConfig, mut progress: impl FnMut(usize)) -> Resul
         }
         progress((episode + 1) * steps);
     }
-    recording.finish(env.control_dt_s(), config.seed, "random-control".into())
+    let mut data = recording.finish(env.control_dt_s(), config.seed, "random-control".into())?;
+    (data.meta.env, data.meta.env_config) = config.recorded_env();
+    Ok(data)
 }
 
 /// Steps between the frames of a [`render_strip`].

@@ -13,7 +13,7 @@ use std::path::Path;
 use ndarray::{Array0, Array1, Array3, Array5, ArrayBase, Dimension};
 use ndarray_npy::{NpzReader, NpzWriter, ReadableElement};
 
-use crate::envs::{EnvKind, FRAME_PX, source_name};
+use crate::envs::{EnvConfig, EnvKind, FRAME_PX, source_name};
 use crate::error::{Error, Result};
 use crate::fsutil::write_atomically;
 
@@ -37,6 +37,12 @@ pub struct DatasetMeta {
     pub source: String,
     /// procl version that wrote the file.
     pub procl_version: String,
+    /// The simulator the frames were rendered by, when training cannot read it off `env`: a
+    /// variant of an environment, or one of procl's simulators recorded as custom data (which
+    /// trains with the recipe for data from elsewhere). Runs trained on the data are evaluated
+    /// in it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub env_config: Option<EnvConfig>,
 }
 
 /// The `source` of a dataset whose file carries no `meta` array.
@@ -52,12 +58,19 @@ impl DatasetMeta {
             seed: 0,
             source: IMPORTED_SOURCE.into(),
             procl_version: String::new(),
+            env_config: None,
         }
     }
 
     /// The environment's name, or `custom`.
     pub fn source_name(&self) -> &'static str {
         source_name(self.env)
+    }
+
+    /// The simulator that rendered the frames, if one of procl's did: the recorded
+    /// configuration, else `env`'s default.
+    pub fn simulator(&self) -> Option<EnvConfig> {
+        self.env_config.clone().or(self.env.map(EnvConfig::from))
     }
 }
 
@@ -261,12 +274,27 @@ impl Dataset {
                 a[1] + 1
             ));
         }
-        if let Some(env) = meta.env {
-            let du = env.make().action_dim();
+        if let (Some(env), Some(config)) = (meta.env, &meta.env_config)
+            && config.kind() != env
+        {
+            return fail(format!(
+                "metadata names the environment {env} but a {} configuration",
+                config.kind()
+            ));
+        }
+        if let Some(config) = &meta.env_config {
+            config
+                .validate()
+                .map_err(|e| Error::dataset(path, format!("metadata `env_config`: {e}")))?;
+        }
+        let simulator = meta.simulator().map(|config| config.make());
+        if let Some(sim) = &simulator {
+            let du = sim.action_dim();
             if a[2] != du {
                 return fail(format!(
-                    "`actions` has {} components per step; {env} takes {du}",
-                    a[2]
+                    "`actions` has {} components per step; {} takes {du}",
+                    a[2],
+                    sim.kind()
                 ));
             }
         }
@@ -279,7 +307,7 @@ impl Dataset {
         }
         if let Some(states) = states {
             let s = states.shape();
-            let dq = meta.env.map(|env| env.make().config_dim());
+            let dq = simulator.as_ref().map(|sim| sim.config_dim());
             let expected_width = dq.map_or(s[2] >= 2 && s[2] % 2 == 0, |dq| s[2] == 2 * dq);
             if s[..2] != [a[0], a[1] + 1] || !expected_width {
                 return fail(format!(

@@ -8,6 +8,7 @@ use crate::error::{Error, Result};
 
 /// Dynamics, scene and rendering parameters (defaults from FetchReach).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct FetchConfig {
     /// Control period, seconds.
     pub control_dt_s: f64,

@@ -61,11 +61,111 @@ impl EnvKind {
 
     /// Builds the environment with its default configuration.
     pub fn make(self) -> Box<dyn Env> {
-        match self {
-            EnvKind::PointMass => Box::new(PointMass::new(PointMassConfig::default())),
-            EnvKind::Reacher => Box::new(Reacher::new(ReacherConfig::default())),
-            EnvKind::Fetch => Box::new(Fetch::new(FetchConfig::default())),
+        EnvConfig::from(self).make()
+    }
+}
+
+/// One environment with its whole configuration. A variant of an environment (the arm's base
+/// moved, other link lengths or colours) is its kind with other parameters; datasets collected
+/// from a variant record it, and runs trained on them are evaluated in it.
+///
+/// As TOML, one table named after the environment with the fields that differ from its
+/// defaults, e.g. `[reacher]` and `base_m = [0.035, -0.025]`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum EnvConfig {
+    PointMass(PointMassConfig),
+    Reacher(ReacherConfig),
+    Fetch(FetchConfig),
+}
+
+impl From<EnvKind> for EnvConfig {
+    fn from(kind: EnvKind) -> Self {
+        match kind {
+            EnvKind::PointMass => EnvConfig::PointMass(PointMassConfig::default()),
+            EnvKind::Reacher => EnvConfig::Reacher(ReacherConfig::default()),
+            EnvKind::Fetch => EnvConfig::Fetch(FetchConfig::default()),
         }
+    }
+}
+
+impl EnvConfig {
+    /// Which environment this configures.
+    pub fn kind(&self) -> EnvKind {
+        match self {
+            EnvConfig::PointMass(_) => EnvKind::PointMass,
+            EnvConfig::Reacher(_) => EnvKind::Reacher,
+            EnvConfig::Fetch(_) => EnvKind::Fetch,
+        }
+    }
+
+    /// Whether this is the environment's default configuration.
+    pub fn is_default(&self) -> bool {
+        *self == EnvConfig::from(self.kind())
+    }
+
+    /// Builds the environment.
+    pub fn make(&self) -> Box<dyn Env> {
+        match self {
+            EnvConfig::PointMass(config) => Box::new(PointMass::new(config.clone())),
+            EnvConfig::Reacher(config) => Box::new(Reacher::new(config.clone())),
+            EnvConfig::Fetch(config) => Box::new(Fetch::new(config.clone())),
+        }
+    }
+
+    /// Refuses parameters the simulator cannot run, naming the field.
+    pub fn validate(&self) -> Result<()> {
+        let positive = |field: &str, value: f64| {
+            if value.is_finite() && value > 0.0 {
+                Ok(())
+            } else {
+                Err(Error::config(
+                    format!("{}.{field}", self.kind()),
+                    format!("{value} must be positive"),
+                ))
+            }
+        };
+        match self {
+            EnvConfig::PointMass(c) => {
+                positive("control_dt_s", c.control_dt_s)?;
+                positive("mass_kg", c.mass_kg)?;
+                positive("gear", c.gear)?;
+                positive("joint_limit_m", c.joint_limit_m)?;
+                positive("ball_radius_m", c.ball_radius_m)
+            }
+            EnvConfig::Reacher(c) => c.validate(),
+            EnvConfig::Fetch(c) => {
+                positive("control_dt_s", c.control_dt_s)?;
+                positive("max_accel_m_s2", c.max_accel_m_s2)?;
+                let (lo, hi) = (c.workspace_lo_m, c.workspace_hi_m);
+                if (0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
+                    Ok(())
+                } else {
+                    Err(Error::config(
+                        "fetch.workspace_lo_m",
+                        format!("{lo:?} must lie below workspace_hi_m {hi:?} on every axis"),
+                    ))
+                }
+            }
+        }
+    }
+
+    /// Reads a configuration file: one TOML table named after an environment (`[reacher]`,
+    /// `[point-mass]`, `[fetch]`) holding the fields that differ from its defaults.
+    pub fn load(path: &std::path::Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let config: Self = toml::from_str(&text).map_err(|e| {
+            Error::config(
+                path.display().to_string(),
+                format!(
+                    "not an environment configuration ({}); expected one table, [{}], with the fields to change",
+                    e.message(),
+                    EnvKind::NAMES.join("] or [")
+                ),
+            )
+        })?;
+        config.validate()?;
+        Ok(config)
     }
 }
 
@@ -233,4 +333,61 @@ pub(crate) fn sample_box(rng: &mut ChaCha8Rng, ranges: &[[f64; 2]]) -> Vec<f64> 
         .iter()
         .map(|&[lo, hi]| rng.random_range(lo..=hi))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn load(text: &str) -> Result<EnvConfig> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("variant.toml");
+        std::fs::write(&path, text).unwrap();
+        EnvConfig::load(&path)
+    }
+
+    #[test]
+    fn a_variant_file_changes_only_the_fields_it_names() {
+        let config =
+            load("[reacher]\nbase_m = [0.035, -0.025]\narm_rgb = [0.3, 0.6, 0.8]\n").unwrap();
+        let want = ReacherConfig {
+            base_m: [0.035, -0.025],
+            arm_rgb: [0.3, 0.6, 0.8],
+            ..ReacherConfig::default()
+        };
+        assert_eq!(config, EnvConfig::Reacher(want));
+        assert_eq!(config.kind(), EnvKind::Reacher);
+        assert!(!config.is_default());
+        // A nested table is partial too.
+        let camera = load("[point-mass.camera]\nheight_m = 0.8\n").unwrap();
+        let EnvConfig::PointMass(pm) = &camera else {
+            panic!("{camera:?}")
+        };
+        assert_eq!(pm.camera.height_m, 0.8);
+        assert_eq!(pm.camera.fovy_deg, 45.0);
+        assert!(load("[fetch]\n").unwrap().is_default());
+        for kind in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
+            assert!(EnvConfig::from(kind).is_default());
+            assert!(EnvConfig::from(kind).validate().is_ok(), "{kind}");
+        }
+    }
+
+    #[test]
+    fn a_wrong_variant_file_is_refused_in_one_line_naming_it() {
+        for (text, wanted) in [
+            ("[reacher]\nbase = [0.0, 0.0]\n", "base"),
+            ("[robot]\n", "robot"),
+            ("[reacher]\n[fetch]\n", "variant.toml"),
+            ("[reacher]\nbase_m = [0.2, 0.0]\n", "reacher.base_m"),
+            ("[point-mass]\nmass_kg = -1.0\n", "point-mass.mass_kg"),
+            (
+                "[fetch]\nworkspace_hi_m = [1.0, 0.9, 0.7]\n",
+                "fetch.workspace_lo_m",
+            ),
+        ] {
+            let message = load(text).unwrap_err().to_string();
+            assert!(message.contains(wanted), "{text}: {message}");
+            assert!(!message.trim().contains('\n'), "{message}");
+        }
+    }
 }

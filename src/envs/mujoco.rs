@@ -23,6 +23,7 @@ pub type Mat2 = [[f64; 2]; 2];
 /// MuJoCo's soft-constraint parameters for joint limits: `solref = (timeconst, dampratio)` and
 /// `solimp = (dmin, dmax, width, midpoint, power)`. Defaults are MuJoCo's (and dm_control's).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SoftLimitModel {
     /// solref[0]: time constant of the constraint's mass-spring-damper, seconds.
     pub timeconst_s: f64,

@@ -7,6 +7,7 @@ use crate::error::Result;
 
 /// Physical and visual parameters of the point mass (defaults from dm_control).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PointMassConfig {
     /// Control period and MuJoCo timestep, seconds (one physics step per control step).
     pub control_dt_s: f64,

@@ -3,10 +3,12 @@
 use super::mujoco::{Dynamics2, Joint, Mat2, SoftLimitModel, euler_step};
 use super::render2d::{Canvas, Shape, TopDownCamera};
 use super::{Env, EnvKind, Frame, State, clip_action, validate_state};
-use crate::error::Result;
+use crate::error::{Error, Result};
 
-/// Physical and visual parameters of the reacher (defaults from dm_control).
+/// Physical and visual parameters of the reacher (defaults from dm_control). A TOML table of
+/// some of the fields changes only those (`procl collect --env-config`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ReacherConfig {
     /// Control period and MuJoCo timestep, seconds.
     pub control_dt_s: f64,
@@ -40,6 +42,10 @@ pub struct ReacherConfig {
     /// Arm and fingertip colours, RGB in [0, 1].
     pub arm_rgb: [f32; 3],
     pub fingertip_rgb: [f32; 3],
+    /// Where the shoulder stands on the floor, m from the point under the camera (the image
+    /// centre); the kinematics are relative to it, so distances between configurations do not
+    /// depend on it.
+    pub base_m: [f64; 2],
     /// The top-down camera.
     pub camera: TopDownCamera,
 }
@@ -66,8 +72,69 @@ impl Default for ReacherConfig {
             fingertip_radius_m: 0.025,
             arm_rgb: [0.7, 0.5, 0.3],
             fingertip_rgb: [0.7, 0.4, 0.2],
+            base_m: [0.0, 0.0],
             camera: TopDownCamera::default(),
         }
+    }
+}
+
+impl ReacherConfig {
+    /// Refuses a configuration the simulator cannot run or the camera cannot see whole: a
+    /// non-positive length, mass or period, an empty joint range, or an arm whose reach leaves
+    /// the image.
+    pub fn validate(&self) -> Result<()> {
+        let positive = [
+            ("control_dt_s", self.control_dt_s),
+            ("link1_length_m", self.link1_length_m),
+            ("link1_mass_kg", self.link1_mass_kg),
+            ("link1_inertia", self.link1_inertia),
+            ("link2_mass_kg", self.link2_mass_kg),
+            ("link2_inertia", self.link2_inertia),
+            ("fingertip_m", self.fingertip_m),
+            ("hand_length_m", self.hand_length_m),
+            ("gear", self.gear),
+            ("link_radius_m", self.link_radius_m),
+            ("fingertip_radius_m", self.fingertip_radius_m),
+        ];
+        for (field, value) in positive {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(Error::config(
+                    format!("reacher.{field}"),
+                    format!("{value} must be positive"),
+                ));
+            }
+        }
+        for (field, [lo, hi]) in [
+            ("shoulder_range_deg", self.shoulder_range_deg),
+            ("wrist_range_deg", self.wrist_range_deg),
+        ] {
+            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                return Err(Error::config(
+                    format!("reacher.{field}"),
+                    format!("[{lo}, {hi}] is not a range (lower < upper)"),
+                ));
+            }
+        }
+        if !self.base_m.iter().all(|x| x.is_finite()) {
+            return Err(Error::config(
+                "reacher.base_m",
+                format!("{:?} must be finite", self.base_m),
+            ));
+        }
+        let reach = self.base_m[0].hypot(self.base_m[1])
+            + self.link1_length_m
+            + self.fingertip_m.max(self.hand_length_m)
+            + self.fingertip_radius_m.max(self.link_radius_m);
+        let half = self.camera.half_width_m();
+        if reach > half {
+            return Err(Error::config(
+                "reacher.base_m",
+                format!(
+                    "the arm reaches {reach:.3} m from the image centre, past the camera's {half:.3} m: shorten the links or move the base in"
+                ),
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -83,7 +150,8 @@ pub struct Reacher {
 }
 
 impl Reacher {
-    /// Builds the environment at q = 0, at rest.
+    /// Builds the environment at q = 0, at rest ([`ReacherConfig::validate`] says whether the
+    /// configuration is usable).
     pub fn new(config: ReacherConfig) -> Self {
         let joint = |range_deg: [f64; 2]| Joint {
             range: range_deg.map(f64::to_radians),
@@ -140,7 +208,7 @@ impl Reacher {
         ]
     }
 
-    /// Wrist and fingertip positions (m) in the floor plane for configuration `q`.
+    /// Wrist and fingertip positions (m) relative to the shoulder for configuration `q`.
     pub fn forward_kinematics(&self, q: [f64; 2]) -> ([f64; 2], [f64; 2]) {
         let c = &self.config;
         let wrist = [c.link1_length_m * q[0].cos(), c.link1_length_m * q[0].sin()];
@@ -154,15 +222,17 @@ impl Reacher {
 
     fn shapes(&self) -> [Shape; 3] {
         let c = &self.config;
+        let on_floor = |[x, y]: [f64; 2]| [x + c.base_m[0], y + c.base_m[1]];
         let (wrist, tip) = self.forward_kinematics(self.q);
         let a = self.q[0] + self.q[1];
-        let hand_end = [
+        let hand_end = on_floor([
             wrist[0] + c.hand_length_m * a.cos(),
             wrist[1] + c.hand_length_m * a.sin(),
-        ];
+        ]);
+        let (wrist, tip) = (on_floor(wrist), on_floor(tip));
         [
             Shape::Capsule {
-                from: [0.0, 0.0],
+                from: c.base_m,
                 to: wrist,
                 radius: c.link_radius_m,
                 rgb: c.arm_rgb,
@@ -240,6 +310,87 @@ impl Env for Reacher {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The centre of the pure-red pixels of a frame, (column, row).
+    fn red_centroid(frame: &Frame) -> (f64, f64) {
+        let (mut sum, mut n) = ((0.0, 0.0), 0.0);
+        for (k, px) in frame.chunks(3).enumerate() {
+            if px[0] > 200 && px[1] < 40 && px[2] < 40 {
+                sum.0 += (k % crate::envs::FRAME_PX) as f64;
+                sum.1 += (k / crate::envs::FRAME_PX) as f64;
+                n += 1.0;
+            }
+        }
+        assert!(n > 20.0, "{n} red pixels");
+        (sum.0 / n, sum.1 / n)
+    }
+
+    #[test]
+    fn moving_the_base_moves_the_drawn_arm_and_not_its_kinematics() {
+        let red = ReacherConfig {
+            arm_rgb: [1.0, 0.0, 0.0],
+            fingertip_rgb: [1.0, 0.0, 0.0],
+            ..ReacherConfig::default()
+        };
+        let px = red.camera.px_per_m();
+        // 3 px right and 2 px up on the floor: 2 rows towards the top of the image.
+        let moved = ReacherConfig {
+            base_m: [3.0 / px, 2.0 / px],
+            ..red.clone()
+        };
+        let state = State {
+            q: vec![0.7, 1.1],
+            qd: vec![0.0, 0.0],
+        };
+        let mut frames = [[0u8; crate::envs::FRAME_BYTES]; 2];
+        for (config, frame) in [red, moved].into_iter().zip(frames.iter_mut()) {
+            let mut env = Reacher::new(config);
+            env.set_state(&state).unwrap();
+            env.render(frame);
+        }
+        let (a, b) = (red_centroid(&frames[0]), red_centroid(&frames[1]));
+        assert!((b.0 - a.0 - 3.0).abs() < 0.05, "{a:?} -> {b:?}");
+        assert!((b.1 - a.1 + 2.0).abs() < 0.05, "{a:?} -> {b:?}");
+        let env = Reacher::new(ReacherConfig {
+            base_m: [0.03, 0.0],
+            ..ReacherConfig::default()
+        });
+        let straight = Reacher::new(ReacherConfig::default());
+        assert_eq!(
+            env.fingertip_distance_m(&[0.0, 0.0], &[1.0, 0.5]),
+            straight.fingertip_distance_m(&[0.0, 0.0], &[1.0, 0.5])
+        );
+    }
+
+    #[test]
+    fn an_arm_that_leaves_the_image_or_cannot_be_simulated_is_refused_by_field() {
+        assert!(ReacherConfig::default().validate().is_ok());
+        let field = |config: ReacherConfig| match config.validate() {
+            Err(Error::InvalidConfig { field, .. }) => field,
+            other => panic!("{other:?}"),
+        };
+        // The default arm reaches 0.265 m of the camera's 0.311 m: 0.05 m off centre is too far.
+        let off = ReacherConfig {
+            base_m: [0.0, -0.05],
+            ..ReacherConfig::default()
+        };
+        assert_eq!(field(off), "reacher.base_m");
+        let in_view = ReacherConfig {
+            base_m: [0.035, -0.025],
+            ..ReacherConfig::default()
+        };
+        assert!(in_view.validate().is_ok());
+        let massless = ReacherConfig {
+            link2_mass_kg: 0.0,
+            ..ReacherConfig::default()
+        };
+        assert_eq!(field(massless), "reacher.link2_mass_kg");
+        let backwards = ReacherConfig {
+            wrist_range_deg: [10.0, -10.0],
+            ..ReacherConfig::default()
+        };
+        assert_eq!(field(backwards), "reacher.wrist_range_deg");
+    }
 
     #[test]
     fn fingertip_distance_is_measured_between_the_fingertips_in_metres() {

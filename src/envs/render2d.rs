@@ -10,6 +10,7 @@ const FLOOR_LIGHT: [f32; 3] = [0.2, 0.3, 0.4];
 
 /// A camera looking straight down the world -z axis at the origin, x to the right, y up.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct TopDownCamera {
     /// Height of the camera above the floor, metres (dm_control: 0.75).
     pub height_m: f64,

@@ -7,7 +7,7 @@ use std::path::Path;
 use burn::tensor::Device;
 use plotters::prelude::*;
 
-use crate::envs::{EnvKind, FRAME_BYTES, State};
+use crate::envs::{EnvConfig, FRAME_BYTES, State};
 use crate::error::Result;
 use crate::model::{LatentEncoder, frames_to_tensor, to_vec};
 
@@ -236,7 +236,7 @@ pub fn knn_r2(inputs: &[Vec<f64>], targets: &[Vec<f64>], k: usize) -> Vec<f64> {
 /// Configurations on a `side x side` grid over the first two dimensions of the env's
 /// configuration box (at rest). A third dimension (Fetch's height) steps through `side` levels
 /// along the grid's diagonals, so the linear fit sees it vary apart from the first two.
-pub fn config_grid(env: EnvKind, side: usize) -> Vec<Vec<f64>> {
+pub fn config_grid(env: &EnvConfig, side: usize) -> Vec<Vec<f64>> {
     let ranges = env.make().config_ranges();
     let lerp = |r: [f64; 2], k: usize| r[0] + (r[1] - r[0]) * (k as f64 + 0.5) / side as f64;
     (0..side * side)
@@ -258,7 +258,7 @@ pub fn config_grid(env: EnvKind, side: usize) -> Vec<Vec<f64>> {
 
 /// Encodes the configurations `configs` (rendered at rest) in batches.
 pub fn encode_configs(
-    env: EnvKind,
+    env: &EnvConfig,
     encoder: &dyn LatentEncoder,
     configs: &[Vec<f64>],
     device: &Device,
@@ -380,7 +380,7 @@ fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<Vec<f64>>) -> Vec<Vec<f64>> {
 
 /// Computes the diagnostics of `encoder` on a grid and, if `png` is given, plots the latent map.
 pub fn latent_diagnostics(
-    env: EnvKind,
+    env: &EnvConfig,
     encoder: &dyn LatentEncoder,
     device: &Device,
     png: Option<&Path>,
@@ -420,14 +420,17 @@ pub fn latent_diagnostics(
 /// blue: q1), grid neighbours joined so folds and twists are visible.
 fn save_latent_map(
     path: &Path,
-    env: EnvKind,
+    env: &EnvConfig,
     configs: &[Vec<f64>],
     latents: &[Vec<f64>],
 ) -> Result<()> {
     let ranges = env.make().config_ranges();
     let side = (configs.len() as f64).sqrt().round() as usize;
     super::plots::render_png(path, (640, 640), |root| {
-        let title = format!("latent map of {env}: h coloured by true configuration");
+        let title = format!(
+            "latent map of {}: h coloured by true configuration",
+            env.kind()
+        );
         let point = |k: usize| (latents[k][0], latents[k].get(1).copied().unwrap_or(0.0));
         let mut chart =
             super::plots::latent_plane_chart(root, &title, (0..latents.len()).map(point))?;

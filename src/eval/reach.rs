@@ -5,7 +5,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::control::Policy;
-use crate::envs::{EnvKind, FRAME_BYTES, Frame, State};
+use crate::envs::{EnvConfig, EnvKind, FRAME_BYTES, Frame, State};
 
 /// The protocol's settings for one environment.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -53,7 +53,7 @@ impl ReachConfig {
 }
 
 /// Start and goal states of every episode (both at rest, uniform over the configuration space).
-pub fn reach_tasks(env: EnvKind, config: &ReachConfig) -> Vec<(State, State)> {
+pub fn reach_tasks(env: &EnvConfig, config: &ReachConfig) -> Vec<(State, State)> {
     let sim = env.make();
     (0..config.episodes)
         .map(|k| {
@@ -97,7 +97,7 @@ pub struct EpisodeRecord {
 
 /// Runs `policy` from `start` toward `goal` for `horizon` steps.
 pub fn run_episode(
-    env: EnvKind,
+    env: &EnvConfig,
     policy: &mut dyn Policy,
     start: &State,
     goal: &State,
@@ -200,6 +200,9 @@ pub struct MethodSummary {
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ReachReport {
     pub env: EnvKind,
+    /// The simulator's configuration where it is not the environment's default (a variant).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub env_config: Option<EnvConfig>,
     pub protocol: ReachConfig,
     pub methods: Vec<MethodSummary>,
 }
@@ -333,7 +336,7 @@ pub fn summarise(
 /// Runs every task with `policy` (reset per episode, so a latent policy's encoder is built
 /// once), recording the frames of the first episode if `record_first`.
 pub fn evaluate_reach(
-    env: EnvKind,
+    env: &EnvConfig,
     config: &ReachConfig,
     policy: &mut dyn Policy,
     record_first: bool,

@@ -16,6 +16,7 @@ use crate::control::{
     FeedbackLaw, LatentPdPolicy, LatentPolicy, OraclePdPolicy, PdController, Pid, PidController,
     Policy, oracle_gains,
 };
+use crate::envs::EnvConfig;
 use crate::error::{Error, Result};
 use crate::model::{LatentEncoder, cpu_device};
 use crate::train::{RunPaths, TrainConfig, TrainedModel};
@@ -130,7 +131,7 @@ fn nvae_control(config: &TrainConfig) -> Result<(PidController, f64)> {
 pub fn write_diagnostics(run: &RunPaths) -> Result<Option<super::latent_map::LatentDiagnostics>> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
-    let Some(env) = config.env else {
+    let Some(env) = run.recorded_simulator(&config)? else {
         return Ok(None);
     };
     let png = run.dir.join(LATENT_MAP);
@@ -138,7 +139,7 @@ pub fn write_diagnostics(run: &RunPaths) -> Result<Option<super::latent_map::Lat
         TrainedModel::Procl(model) => &model.encoder,
         TrainedModel::Nvae(model) => &model.encoder,
     };
-    let diagnostics = super::latent_map::latent_diagnostics(env, encoder, &device, Some(&png))?;
+    let diagnostics = super::latent_map::latent_diagnostics(&env, encoder, &device, Some(&png))?;
     let path = run.dir.join("diagnostics.json");
     crate::fsutil::write_json(&path, &diagnostics)?;
     Ok(Some(diagnostics))
@@ -158,8 +159,8 @@ pub fn write_env_diagnostics(run: &RunPaths) -> Result<super::latent_map::Latent
 }
 
 /// Evaluates the oracle PD on the true state for `protocol`.
-pub fn evaluate_oracle(env: crate::envs::EnvKind, protocol: &ReachConfig) -> Result<MethodSummary> {
-    let gains = oracle_gains(env);
+pub fn evaluate_oracle(env: &EnvConfig, protocol: &ReachConfig) -> Result<MethodSummary> {
+    let gains = oracle_gains(env.kind());
     let records = evaluate_reach(
         env,
         protocol,
@@ -182,7 +183,7 @@ pub fn evaluate_run(
 
 /// The reach episodes of a planner's policy, and its control times.
 fn reach_with<L: FeedbackLaw, E: LatentEncoder>(
-    env: crate::envs::EnvKind,
+    env: &EnvConfig,
     protocol: &ReachConfig,
     mut policy: LatentPolicy<L, E>,
     progress: &mut impl FnMut(usize),
@@ -200,25 +201,26 @@ pub fn evaluate_run_with(
 ) -> Result<ReachReport> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
-    let env = config.simulated_env(&run.dir)?;
+    let sim = run.simulator(&config)?;
+    let env = sim.kind();
     let (label, records, times) = match (controller, model) {
         (Controller::Feedback, model) => {
             let (label, _, mut policy) = run_policy(&config, model, device)?;
-            let records = evaluate_reach(env, protocol, policy.as_mut(), true, &mut progress)?;
+            let records = evaluate_reach(&sim, protocol, policy.as_mut(), true, &mut progress)?;
             (label, records, policy.take_control_times())
         }
         (Controller::Mpc(mpc), TrainedModel::Procl(model)) => {
-            let dt = env.make().control_dt_s();
+            let dt = sim.make().control_dt_s();
             let law = CemMpc::new(model.dynamics, device.clone(), mpc.clone(), dt)?;
             let policy = MpcPolicy::new(model.encoder, device, law, dt);
-            let (records, times) = reach_with(env, protocol, policy, &mut progress)?;
+            let (records, times) = reach_with(&sim, protocol, policy, &mut progress)?;
             (format!("{} + MPC", config.method.label()), records, times)
         }
         (Controller::Ilqr(ilqr), TrainedModel::Procl(model)) => {
-            let dt = env.make().control_dt_s();
+            let dt = sim.make().control_dt_s();
             let law = IlqrMpc::new(model.dynamics, device.clone(), ilqr.clone(), dt)?;
             let policy = IlqrPolicy::new(model.encoder, device, law, dt);
-            let (records, times) = reach_with(env, protocol, policy, &mut progress)?;
+            let (records, times) = reach_with(&sim, protocol, policy, &mut progress)?;
             (format!("{} + iLQR", config.method.label()), records, times)
         }
         (Controller::Proportional, TrainedModel::Nvae(model)) => {
@@ -229,7 +231,7 @@ pub fn evaluate_run_with(
                 ..pid
             };
             let policy = LatentPidPolicy::new(model.encoder, device, Pid::new(gains, dt), dt);
-            let (records, times) = reach_with(env, protocol, policy, &mut progress)?;
+            let (records, times) = reach_with(&sim, protocol, policy, &mut progress)?;
             (format!("{} + P", config.method.label()), records, times)
         }
         (Controller::Proportional, TrainedModel::Procl(_)) => {
@@ -254,9 +256,10 @@ pub fn evaluate_run_with(
     };
     let label = label.as_str();
     let latent = summarise(label, &records, protocol, &times);
-    let oracle = evaluate_oracle(env, protocol)?;
+    let oracle = evaluate_oracle(&sim, protocol)?;
     let report = ReachReport {
         env,
+        env_config: (!sim.is_default()).then_some(sim),
         protocol: protocol.clone(),
         methods: vec![latent, oracle],
     };

@@ -11,7 +11,7 @@ use super::reach::{EpisodeRecord, ReachConfig, TrackSummary, summarise};
 use super::run::run_policy;
 use crate::control::{OraclePdPolicy, Policy, Target, oracle_gains};
 use crate::data::Dataset;
-use crate::envs::{EnvKind, FRAME_BYTES, State};
+use crate::envs::{EnvConfig, EnvKind, FRAME_BYTES, State};
 use crate::error::{Error, Result};
 use crate::model::{LatentEncoder, cpu_device, frames_to_tensor, to_vec};
 use crate::train::RunPaths;
@@ -86,7 +86,7 @@ impl Reference {
 /// Runs `policy` along `reference` from its first state. The action at step `t` aims at the
 /// reference at `t + 1` (the state that action produces), as the demonstrator's did.
 pub fn track_episode(
-    env: EnvKind,
+    env: &EnvConfig,
     policy: &mut dyn Policy,
     reference: &Reference,
 ) -> Result<EpisodeRecord> {
@@ -171,7 +171,8 @@ pub fn track_run(
 ) -> Result<TrackReport> {
     let device = cpu_device();
     let (config, model) = run.load_trained(&device)?;
-    let env = config.simulated_env(&run.dir)?;
+    let sim = run.simulator(&config)?;
+    let env = sim.kind();
     let demo = Dataset::load(demo_path)?;
     if demo.meta.env != Some(env) {
         return Err(Error::dataset(
@@ -179,6 +180,15 @@ pub fn track_run(
             format!(
                 "holds {} demonstrations but the run {} controls {env}",
                 demo.meta.source_name(),
+                run.dir.display()
+            ),
+        ));
+    }
+    if demo.meta.simulator().as_ref() != Some(&sim) {
+        return Err(Error::dataset(
+            demo_path,
+            format!(
+                "was recorded in another configuration of {env} than the one the run {} controls (its dataset's)",
                 run.dir.display()
             ),
         ));
@@ -194,9 +204,9 @@ pub fn track_run(
     let (mut latent_runs, mut oracle_runs, mut reference_paths) = (vec![], vec![], vec![]);
     for episode in 0..demo.episodes() {
         let mut reference = Reference::from_demo(&demo, states, episode);
-        oracle_runs.push(track_episode(env, &mut oracle, &reference)?);
+        oracle_runs.push(track_episode(&sim, &mut oracle, &reference)?);
         reference.encode(latent_policy.encoder(), &device, dt);
-        let mut record = track_episode(env, latent_policy.as_mut(), &reference)?;
+        let mut record = track_episode(&sim, latent_policy.as_mut(), &reference)?;
         record.goal_latent = reference.h.last().cloned().unwrap_or_default();
         reference_paths.push(reference.states.iter().map(|s| s.q.clone()).collect());
         latent_runs.push(record);

@@ -31,14 +31,14 @@ pub fn collect_or_reuse(
     if path.exists() {
         let data = Dataset::load(path)?;
         let found = (
-            data.meta.env,
+            (data.meta.env, data.meta.env_config.clone()),
             data.meta.seed,
             data.episodes(),
             data.steps(),
             data.meta.source.as_str(),
         );
         let wanted = (
-            Some(config.env),
+            config.recorded_env(),
             config.seed,
             episodes,
             steps,
@@ -57,7 +57,7 @@ pub fn collect_or_reuse(
                     wanted.2,
                     wanted.4,
                     wanted.3,
-                    config.env,
+                    crate::envs::source_name(wanted.0.0),
                     wanted.1
                 ),
             ));

@@ -6,6 +6,7 @@ use burn::tensor::Device;
 
 use super::{Method, TrainConfig};
 use crate::baselines::nvae::NvaeModel;
+use crate::envs::EnvConfig;
 use crate::error::{Error, Result};
 use crate::model::ProclModel;
 use crate::train::checkpoint::load_checkpoint;
@@ -80,6 +81,41 @@ impl RunPaths {
             ));
         }
         Ok(())
+    }
+
+    /// The simulator a run controls in evaluation: the one its dataset recorded (a variant, or
+    /// custom data from one of procl's simulators), else its environment's default; an error
+    /// naming the run for custom data from elsewhere.
+    pub fn simulator(&self, config: &TrainConfig) -> Result<EnvConfig> {
+        match self.recorded_simulator(config)? {
+            Some(sim) => Ok(sim),
+            None => config.simulated_env(&self.dir).map(EnvConfig::from),
+        }
+    }
+
+    /// [`RunPaths::simulator`], or `None` for a run on custom data from elsewhere.
+    pub fn recorded_simulator(&self, config: &TrainConfig) -> Result<Option<EnvConfig>> {
+        let path = self.data_record();
+        let recorded = match std::fs::read_to_string(&path) {
+            Ok(text) => {
+                serde_json::from_str::<DataRecord>(&text)
+                    .map_err(|e| Error::config("run", format!("{}: {e}", path.display())))?
+                    .env_config
+            }
+            Err(_) => None,
+        };
+        match (recorded, config.env) {
+            (Some(recorded), Some(env)) if recorded.kind() != env => Err(Error::config(
+                "run",
+                format!(
+                    "{} records a {} simulator for a {env} run",
+                    path.display(),
+                    recorded.kind()
+                ),
+            )),
+            (Some(recorded), _) => Ok(Some(recorded)),
+            (None, env) => Ok(env.map(EnvConfig::from)),
+        }
     }
 
     /// Reads the resolved config of a finished or running run.
@@ -206,12 +242,15 @@ fn drop_retired_options(config: &mut serde_json::Value) -> std::result::Result<(
     Ok(())
 }
 
-/// The dataset a run trains on: its size and [`crate::data::Dataset::content_sha256`].
+/// The dataset a run trains on: its size, [`crate::data::Dataset::content_sha256`], and the
+/// simulator configuration it records (a variant, or a simulator recorded as custom data).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DataRecord {
     pub sha256: String,
     pub episodes: usize,
     pub steps: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub env_config: Option<EnvConfig>,
 }
 
 impl DataRecord {
@@ -220,6 +259,7 @@ impl DataRecord {
             sha256: data.content_sha256(),
             episodes: data.episodes(),
             steps: data.steps(),
+            env_config: data.meta.env_config.clone(),
         }
     }
 

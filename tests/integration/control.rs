@@ -25,7 +25,7 @@ fn oracle_reaches_every_goal_in_every_env() {
     ] {
         let mut protocol = ReachConfig::for_env(env, 7);
         protocol.episodes = 10;
-        let oracle = evaluate_oracle(env, &protocol).unwrap();
+        let oracle = evaluate_oracle(&env.into(), &protocol).unwrap();
         assert_eq!(
             oracle.success_rate, 1.0,
             "{env}: {:?}",
@@ -40,7 +40,7 @@ fn oracle_reaches_every_goal_in_every_env() {
         );
         assert!(oracle.final_mean < 0.1 * protocol.success_threshold);
         // Each episode's start, goal and final configuration, in task order.
-        let tasks = reach_tasks(env, &protocol);
+        let tasks = reach_tasks(&env.into(), &protocol);
         assert_eq!(oracle.final_configs.len(), tasks.len());
         assert_eq!(oracle.final_velocities.len(), tasks.len());
         for (k, (start, goal)) in tasks.iter().enumerate() {
@@ -92,10 +92,10 @@ fn closed_loop_encodes_each_frame_once() {
         horizon: 25,
         ..ReachConfig::for_env(env, 3)
     };
-    let tasks = reach_tasks(env, &protocol);
+    let tasks = reach_tasks(&env.into(), &protocol);
     for (start, goal) in &tasks {
         let record = run_episode(
-            env,
+            &env.into(),
             &mut policy as &mut dyn Policy,
             start,
             goal,
@@ -111,7 +111,7 @@ fn closed_loop_encodes_each_frame_once() {
     assert_eq!(policy.control_times_s.len(), tasks.len() * protocol.horizon);
     // Same start and goal: the same actions, so the same record (deterministic closed loop).
     let again = run_episode(
-        env,
+        &env.into(),
         &mut policy as &mut dyn Policy,
         &tasks[0].0,
         &tasks[0].1,
@@ -120,7 +120,7 @@ fn closed_loop_encodes_each_frame_once() {
     )
     .unwrap();
     let first = run_episode(
-        env,
+        &env.into(),
         &mut policy as &mut dyn Policy,
         &tasks[0].0,
         &tasks[0].1,

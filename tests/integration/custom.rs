@@ -219,3 +219,91 @@ fn a_custom_action_dimension_sizes_the_latent() {
     config.batch_size = 4;
     crate::support::train_into(&config, &data, dir.path(), false);
 }
+
+#[test]
+fn a_variant_recorded_as_custom_trains_with_the_generic_recipe_and_evaluates_in_its_simulator() {
+    let dir = tempfile::tempdir().unwrap();
+    let variant = dir.path().join("variant.toml");
+    std::fs::write(
+        &variant,
+        "[reacher]\nbase_m = [0.035, -0.025]\narm_rgb = [0.3, 0.6, 0.8]\n",
+    )
+    .unwrap();
+    let data = dir.path().join("variant.npz");
+    let collect = |extra: &[&str], out: &Path| {
+        let mut args = vec![
+            "collect",
+            "--env-config",
+            path_str(&variant),
+            "--transitions",
+            "60",
+            "--episode-len",
+            "10",
+            "--out",
+            path_str(out),
+        ];
+        args.extend_from_slice(extra);
+        args.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    let args = collect(&["--as-custom"], &data);
+    succeeds(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let loaded = Dataset::load(&data).unwrap();
+    assert_eq!(loaded.meta.env, None);
+    let recorded = loaded.meta.env_config.clone().unwrap();
+    assert_eq!(recorded.kind(), EnvKind::Reacher);
+    assert!(loaded.states.is_some());
+
+    // The frames are the variant's: the same seed in the default reacher draws another image.
+    let plain = dir.path().join("plain.npz");
+    succeeds(&[
+        "collect",
+        "--env",
+        "reacher",
+        "--transitions",
+        "60",
+        "--episode-len",
+        "10",
+        "--out",
+        path_str(&plain),
+    ]);
+    let plain = Dataset::load(&plain).unwrap();
+    assert_eq!(plain.meta.env_config, None);
+    assert_eq!(plain.actions, loaded.actions);
+    assert_ne!(plain.obs, loaded.obs);
+
+    // Training reads nothing of the simulator: the generic recipe for data from elsewhere.
+    let run = dir.path().join("run");
+    succeeds(&[
+        "train",
+        "--data",
+        path_str(&data),
+        "--out",
+        path_str(&run),
+        "--steps",
+        "2",
+    ]);
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["env"], "custom");
+    assert_eq!(config["model"]["encoder"]["head"]["polar"], false);
+    // Evaluation steps the recorded variant.
+    succeeds(&["eval", "--run", path_str(&run), "--episodes", "2"]);
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(report["env"], "reacher");
+    assert_eq!(
+        report["env_config"]["reacher"]["base_m"],
+        serde_json::json!([0.035, -0.025])
+    );
+    assert_eq!(report["protocol"]["distance_unit"], "rad (joint space)");
+
+    // A file for another environment than --env, and an arm out of view, are refused by name.
+    let args = collect(&["--env", "point-mass"], &dir.path().join("x.npz"));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    fails_with(&args, "configures reacher, not --env point-mass");
+    std::fs::write(&variant, "[reacher]\nbase_m = [0.1, 0.0]\n").unwrap();
+    let args = collect(&[], &dir.path().join("y.npz"));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    fails_with(&args, "reacher.base_m");
+    assert!(!dir.path().join("y.npz").exists());
+}

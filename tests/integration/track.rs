@@ -69,7 +69,7 @@ fn the_oracle_follows_every_shape_in_every_env() {
             assert!(travelled > 1e-3, "{env} {shape:?} does not move");
             let reference = Reference::from_demo(&demo, demo.states.as_ref().unwrap(), 0);
             let mut oracle = OraclePdPolicy::new(oracle_gains(env));
-            let record = track_episode(env, &mut oracle, &reference).unwrap();
+            let record = track_episode(&env.into(), &mut oracle, &reference).unwrap();
             assert_eq!(record.distances.len(), demo.steps() + 1);
             // PD lags a moving reference; it must still do far better than standing still at
             // the start (the error of a tracker that ignores the reference).
@@ -111,7 +111,7 @@ fn latent_tracking_encodes_each_frame_once_and_uses_the_references() {
         PdController { kp: 10.0, kd: 2.0 },
         0.02,
     );
-    let record = track_episode(env, &mut policy as &mut dyn Policy, &reference).unwrap();
+    let record = track_episode(&env.into(), &mut policy as &mut dyn Policy, &reference).unwrap();
     // The reference frames were encoded in one batch beforehand; the loop encodes each new
     // frame once.
     assert_eq!(policy.frames_encoded, demo.steps());
