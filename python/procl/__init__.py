@@ -54,13 +54,21 @@ def collect(
     transitions: Optional[int] = None,
     episode_len: Optional[int] = None,
     force: bool = False,
+    variant: Optional[Mapping[str, Any]] = None,
+    as_custom: bool = False,
 ) -> dict:
     """Collects a random-control dataset of ``env`` into the ``.npz`` file ``out``.
 
     Defaults are the command line's: the paper's dataset size (10,000 transitions; Fetch
-    50,000) in the environment's episodes. Returns what ``info`` returns.
+    50,000) in the environment's episodes. ``variant`` changes fields of the environment's
+    configuration (for the reacher e.g. ``{"base_m": [0.035, -0.025]}``), as ``procl collect
+    --env-config`` does; ``as_custom`` records the data as custom, so that ``train`` uses the
+    generic recipe while evaluation runs in the recorded simulator. Returns what ``info``
+    returns.
     """
-    return _procl.collect(env, os.fspath(out), seed, transitions, episode_len, force)
+    variant_json = None if variant is None else json.dumps(dict(variant))
+    return _procl.collect(env, os.fspath(out), seed, transitions, episode_len, force,
+                          variant_json, as_custom)
 
 
 def info(data: PathLike) -> dict:

@@ -97,6 +97,8 @@ def collect(
     transitions: Optional[int] = None,
     episode_len: Optional[int] = None,
     force: bool = False,
+    variant_json: Optional[str] = None,
+    as_custom: bool = False,
 ) -> dict[str, Any]: ...
 def info(data: _Path) -> dict[str, Any]: ...
 def train(

@@ -542,8 +542,11 @@ impl Controller {
 }
 
 /// Collects a random-control dataset of an environment to `out` (an `.npz`); returns a summary.
+/// `variant_json` holds the fields of the environment's configuration to change (a JSON
+/// object); `as_custom` records the data as custom, as `procl collect --as-custom` does.
 #[pyfunction]
-#[pyo3(signature = (env, out, seed=0, transitions=None, episode_len=None, force=false))]
+#[pyo3(signature = (env, out, seed=0, transitions=None, episode_len=None, force=false, variant_json=None, as_custom=false))]
+#[allow(clippy::too_many_arguments)]
 fn collect<'py>(
     py: Python<'py>,
     env: &str,
@@ -552,8 +555,15 @@ fn collect<'py>(
     transitions: Option<usize>,
     episode_len: Option<usize>,
     force: bool,
+    variant_json: Option<String>,
+    as_custom: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let mut config = procl::data::CollectConfig::new(env_kind(env)?, seed);
+    let kind = env_kind(env)?;
+    let mut config = procl::data::CollectConfig::new(kind, seed);
+    if let Some(text) = variant_json {
+        config.env = env_variant(kind, &text).map_err(py_err)?;
+    }
+    config.as_custom = as_custom;
     if let Some(t) = transitions {
         config.transitions = t;
     }
@@ -576,6 +586,17 @@ fn collect<'py>(
     dataset_summary(py, &data)
 }
 
+/// The configuration of `kind` with the fields of the JSON object `fields` changed.
+fn env_variant(kind: EnvKind, fields: &str) -> procl::Result<procl::envs::EnvConfig> {
+    let fields: serde_json::Value =
+        serde_json::from_str(fields).map_err(|e| procl::Error::config("variant", e.to_string()))?;
+    let tagged = serde_json::json!({ kind.name(): fields });
+    let config: procl::envs::EnvConfig = serde_json::from_value(tagged)
+        .map_err(|e| procl::Error::config("variant", e.to_string()))?;
+    config.validate()?;
+    Ok(config)
+}
+
 fn dataset_summary<'py>(
     py: Python<'py>,
     data: &procl::data::Dataset,
@@ -590,6 +611,15 @@ fn dataset_summary<'py>(
     summary.set_item("config_dim", data.config_dim())?;
     summary.set_item("control_dt_s", data.meta.control_dt_s)?;
     summary.set_item("seed", data.meta.seed)?;
+    let variant = match &data.meta.env_config {
+        Some(config) => Some(
+            serde_json::to_string(config)
+                .map_err(|e| procl::Error::config("env_config", e.to_string()))
+                .map_err(py_err)?,
+        ),
+        None => None,
+    };
+    summary.set_item("env_config_json", variant)?;
     Ok(summary)
 }
 

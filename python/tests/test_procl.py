@@ -145,6 +145,20 @@ def test_collect_and_a_newtonian_vae_run_with_pid(tmp_path):
     assert controller.act(obs).shape == (2,)
 
 
+def test_a_variant_collected_as_custom_records_its_simulator(tmp_path):
+    data = tmp_path / "variant.npz"
+    summary = procl.collect("reacher", data, transitions=40, episode_len=10,
+                            variant={"base_m": [0.035, -0.025]}, as_custom=True)
+    assert summary["env"] == "custom" and summary["config_dim"] == 2
+    recorded = json.loads(summary["env_config_json"])
+    assert recorded["reacher"]["base_m"] == [0.035, -0.025]
+    meta = json.loads(bytes(np.load(data)["meta"]))
+    assert meta["env"] == "custom" and meta["env_config"] == recorded
+    plain = procl.collect("reacher", tmp_path / "plain.npz", transitions=40, episode_len=10)
+    assert plain["env_config_json"] is None
+    assert not np.array_equal(np.load(data)["obs"], np.load(tmp_path / "plain.npz")["obs"])
+
+
 def test_bad_input_raises_one_line_errors(tmp_path):
     def raises(fn, needle):
         with pytest.raises(procl.ProclError) as caught:
@@ -163,6 +177,9 @@ def test_bad_input_raises_one_line_errors(tmp_path):
     raises(lambda: controller.reset(np.zeros((32, 32, 3), np.uint8)), "[64, 64, 3]")
     raises(lambda: controller.encode(np.zeros((2, 48, 64, 3), np.uint8)), "`frames` has shape")
     raises(lambda: procl.pretrained("cartpole"), "point-mass")
+    raises(lambda: procl.collect("reacher", tmp_path / "v.npz", variant={"base": 1}), "base")
+    raises(lambda: procl.collect("reacher", tmp_path / "v.npz", variant={"base_m": [0.2, 0.0]}),
+           "reacher.base_m")
     bad = tmp_path / "bad.npz"
     np.savez(bad, obs=np.zeros((1, 3, 64, 64, 3), np.uint8),
              actions=np.full((1, 2, 2), 2.0, np.float32), control_dt_s=np.float64(0.1))
