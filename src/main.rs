@@ -324,7 +324,6 @@ impl Progress {
     }
 }
 
-/// A share as a percentage with two decimals, `-` when undefined.
 /// The environment configuration of `--env` and `--env-config` (which must agree when both are
 /// given): the file's variant, or the named environment's defaults.
 fn resolve_env_config(env: Option<&str>, file: Option<&Path>) -> anyhow::Result<EnvConfig> {
@@ -346,6 +345,7 @@ fn resolve_env_config(env: Option<&str>, file: Option<&Path>) -> anyhow::Result<
     Ok(config)
 }
 
+/// A share as a percentage with two decimals, `-` when undefined.
 fn percent(share: Option<f64>) -> String {
     share.map_or("-".into(), |x| format!("{:.2}%", 100.0 * x))
 }
@@ -421,7 +421,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             );
             if let Some(config) = &m.env_config {
                 println!(
-                    "simulator: {} with other parameters (evaluation runs in it):\n{}",
+                    "simulator: {} as configured here (evaluation runs in it):\n{}",
                     config.kind(),
                     toml::to_string(config)?.trim_end()
                 );

@@ -115,16 +115,7 @@ impl EnvConfig {
 
     /// Refuses parameters the simulator cannot run, naming the field.
     pub fn validate(&self) -> Result<()> {
-        let positive = |field: &str, value: f64| {
-            if value.is_finite() && value > 0.0 {
-                Ok(())
-            } else {
-                Err(Error::config(
-                    format!("{}.{field}", self.kind()),
-                    format!("{value} must be positive"),
-                ))
-            }
-        };
+        let positive = |field: &str, value: f64| require_positive(self.kind(), field, value);
         match self {
             EnvConfig::PointMass(c) => {
                 positive("control_dt_s", c.control_dt_s)?;
@@ -304,6 +295,18 @@ pub fn clip_action<const N: usize>(action: &[f64]) -> [f64; N] {
             0.0
         }
     })
+}
+
+/// Refuses a non-finite or non-positive `value` of the configuration field `env.field`.
+pub(crate) fn require_positive(env: EnvKind, field: &str, value: f64) -> Result<()> {
+    if value.is_finite() && value > 0.0 {
+        Ok(())
+    } else {
+        Err(Error::config(
+            format!("{env}.{field}"),
+            format!("{value} must be positive"),
+        ))
+    }
 }
 
 /// Checks a state's lengths and finiteness for an environment with `dim` dofs.

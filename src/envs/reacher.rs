@@ -2,7 +2,7 @@
 
 use super::mujoco::{Dynamics2, Joint, Mat2, SoftLimitModel, euler_step};
 use super::render2d::{Canvas, Shape, TopDownCamera};
-use super::{Env, EnvKind, Frame, State, clip_action, validate_state};
+use super::{Env, EnvKind, Frame, State, clip_action, require_positive, validate_state};
 use crate::error::{Error, Result};
 
 /// Physical and visual parameters of the reacher (defaults from dm_control). A TOML table of
@@ -97,12 +97,7 @@ impl ReacherConfig {
             ("fingertip_radius_m", self.fingertip_radius_m),
         ];
         for (field, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(Error::config(
-                    format!("reacher.{field}"),
-                    format!("{value} must be positive"),
-                ));
-            }
+            require_positive(EnvKind::Reacher, field, value)?;
         }
         for (field, [lo, hi]) in [
             ("shoulder_range_deg", self.shoulder_range_deg),

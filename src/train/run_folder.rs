@@ -63,12 +63,9 @@ impl RunPaths {
     /// Refuses to resume on another dataset than the one the run started on (runs without a
     /// `data.json` are not checked).
     pub fn check_same_data(&self, record: &DataRecord) -> Result<()> {
-        let path = self.data_record();
-        let Ok(text) = std::fs::read_to_string(&path) else {
+        let Some(saved) = self.saved_data_record("resume")? else {
             return Ok(());
         };
-        let saved: DataRecord = serde_json::from_str(&text)
-            .map_err(|e| Error::config("resume", format!("{}: {e}", path.display())))?;
         if saved.sha256 != record.sha256 {
             return Err(Error::config(
                 "resume",
@@ -95,27 +92,32 @@ impl RunPaths {
 
     /// [`RunPaths::simulator`], or `None` for a run on custom data from elsewhere.
     pub fn recorded_simulator(&self, config: &TrainConfig) -> Result<Option<EnvConfig>> {
-        let path = self.data_record();
-        let recorded = match std::fs::read_to_string(&path) {
-            Ok(text) => {
-                serde_json::from_str::<DataRecord>(&text)
-                    .map_err(|e| Error::config("run", format!("{}: {e}", path.display())))?
-                    .env_config
-            }
-            Err(_) => None,
-        };
+        let recorded = self
+            .saved_data_record("run")?
+            .and_then(|record| record.env_config);
         match (recorded, config.env) {
             (Some(recorded), Some(env)) if recorded.kind() != env => Err(Error::config(
                 "run",
                 format!(
                     "{} records a {} simulator for a {env} run",
-                    path.display(),
+                    self.data_record().display(),
                     recorded.kind()
                 ),
             )),
             (Some(recorded), _) => Ok(Some(recorded)),
             (None, env) => Ok(env.map(EnvConfig::from)),
         }
+    }
+
+    /// The run's `data.json`, if it has one; a file that does not parse is an error of `field`.
+    fn saved_data_record(&self, field: &str) -> Result<Option<DataRecord>> {
+        let path = self.data_record();
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            return Ok(None);
+        };
+        serde_json::from_str(&text)
+            .map(Some)
+            .map_err(|e| Error::config(field, format!("{}: {e}", path.display())))
     }
 
     /// Reads the resolved config of a finished or running run.
