@@ -91,8 +91,9 @@ enum Command {
         /// TOML file over the preset (`preset = "paper"|"procl"`, any config field).
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Custom data only: train with this environment's recipe (point-mass | reacher |
-        /// fetch) instead of the generic one.
+        /// Custom data only: the recipe to train with (generic | point-mass | reacher |
+        /// fetch). Default: the reacher's when the frames turn about a hub (an arm's base),
+        /// else the generic one.
         #[arg(long)]
         preset_env: Option<String>,
         /// Override the config's seed.
@@ -439,8 +440,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             device,
         } => {
             let dataset = procl::data::Dataset::load(&data)?;
-            let recipe = preset_env.map(|e| e.parse::<EnvKind>()).transpose()?;
+            let recipe = preset_env
+                .map(|e| e.parse::<procl::train::Recipe>())
+                .transpose()?;
             let base = procl::train::ConfigBase::for_dataset(&dataset, recipe)?;
+            if let Some(line) = base.describe() {
+                println!("{line}");
+            }
             let method = method.map(|m| m.parse::<Method>()).transpose()?;
             let mut table = match &config {
                 Some(path) => procl::train::read_config_table(path)?,

@@ -90,8 +90,10 @@ def train(
     """Trains on ``data`` into the run folder ``out``, as ``procl train`` does.
 
     ``method`` is "procl" (default), "pc3" or "nvae". ``config`` is a TOML file or a dict of
-    the same keys over the preset (``procl config`` prints them). ``preset_env`` picks an
-    environment's recipe for custom data. Returns steps done, seconds and the final losses.
+    the same keys over the preset (``procl config`` prints them). ``preset_env`` picks the
+    recipe for custom data ("generic", "point-mass", "reacher" or "fetch"; by default the
+    reacher's when the frames turn about a hub, else the generic one). Returns steps done,
+    seconds and the final losses.
     """
     overrides = dict(config) if isinstance(config, Mapping) else {}
     config_path = None if config is None or isinstance(config, Mapping) else os.fspath(config)

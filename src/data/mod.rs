@@ -2,8 +2,10 @@
 //! are recorded by [`crate::control::generate_reference`] in the same layout).
 
 mod collect;
+mod hub;
 mod store;
 
 pub(crate) use collect::Recording;
 pub use collect::{CollectConfig, STRIP_STRIDE, collect, render_strip};
+pub use hub::{Hub, PixelSpread};
 pub use store::{DATASET_FORMAT_VERSION, Dataset, DatasetMeta, IMPORTED_SOURCE};

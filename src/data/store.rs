@@ -143,6 +143,11 @@ impl Dataset {
         &self.obs.as_slice().unwrap_or(&[])[start..start + crate::envs::FRAME_BYTES]
     }
 
+    /// Every frame of every episode, in order.
+    pub fn every_frame(&self) -> impl Iterator<Item = &[u8]> {
+        (0..self.episodes()).flat_map(move |e| (0..=self.steps()).map(move |t| self.frame(e, t)))
+    }
+
     /// SHA-256 of what training reads: the source, the control period, and the frames and
     /// actions (not the file's bytes, which depend on compression), as lowercase hex.
     pub fn content_sha256(&self) -> String {

@@ -707,8 +707,9 @@ mod tests {
             let config = TrainConfig::preset(preset, Method::Procl, env);
             let frames = crate::model::start_frames(env, 6);
             let encoder = config.model.init(3, &device).expect("model").encoder;
-            // A cut away from the default and a signed permutation, as a trained encoder has.
-            let encoder = encoder.place_polar_cut(frames.iter().map(|f| &f[..]));
+            // A centre and a cut away from the defaults and a signed permutation, as a trained
+            // encoder has.
+            let encoder = encoder.set_polar_frame([0.1, -0.05], [-0.6, 0.8]);
             let mut model = crate::model::ProclModel {
                 encoder,
                 dynamics: config.model.dynamics.init(&device),

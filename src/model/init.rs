@@ -43,6 +43,7 @@ impl ModuleMapper for SeededInit {
             || name == "precision_lower"
             || name == super::LATENT_TRANSFORM
             || name == super::encoder::POLAR_AXIS
+            || name == super::encoder::POLAR_CENTRE
         {
             return param;
         }

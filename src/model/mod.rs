@@ -10,6 +10,7 @@ mod init;
 mod trunk;
 
 pub use dynamics::{Dynamics, DynamicsConfig, Transition};
+pub(crate) use encoder::POLAR_CENTRE;
 pub use encoder::{Encoder, EncoderConfig, EncoderHead};
 pub use host_encoder::HostEncoder;
 pub use init::reinit_params;
@@ -45,7 +46,7 @@ pub fn device_by_name(name: &str) -> crate::Result<Device> {
     }
 }
 
-/// Distance from the image centre (image half-widths) within which a polar keypoint's angle
+/// Distance from the polar centre (image half-widths) within which a polar keypoint's angle
 /// fades to 0: the angle of a point at the pivot is undefined.
 pub(crate) const POLAR_FADE_RADIUS: f32 = 0.05;
 

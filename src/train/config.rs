@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use crate::baselines::nvae::NvaeConfig;
+use crate::data::{Hub, PixelSpread};
 use crate::envs::EnvKind;
 use crate::error::{Error, Result};
 use crate::losses::{LossConfig, NoiseMode};
@@ -155,35 +156,109 @@ fn default_orientation_tolerance() -> f64 {
     0.05
 }
 
+/// The recipe data from elsewhere trains with.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Recipe {
+    /// The point mass's (Cartesian keypoints, a linear map to the latent) with the latent
+    /// oriented by its response to the action: nothing else about the system is known.
+    Generic,
+    /// The recipe of one of procl's environments. The reacher's is the recipe for frames that
+    /// turn about a hub: polar keypoints about it (docs/design.md, "Custom data").
+    Env(EnvKind),
+}
+
+impl Recipe {
+    /// Names `--preset-env` takes.
+    pub const NAMES: [&'static str; 4] = ["generic", "point-mass", "reacher", "fetch"];
+
+    /// The recipe frames with this spread call for: the reacher's when they turn about a hub
+    /// (an arm's base), the generic one otherwise.
+    pub fn for_frames(spread: &PixelSpread) -> Self {
+        match spread.hub() {
+            Some(_) => Self::Env(EnvKind::Reacher),
+            None => Self::Generic,
+        }
+    }
+}
+
+impl std::str::FromStr for Recipe {
+    type Err = Error;
+    fn from_str(name: &str) -> Result<Self> {
+        match name {
+            "generic" => Ok(Self::Generic),
+            name => name.parse::<EnvKind>().map(Self::Env).map_err(|_| {
+                Error::config(
+                    "preset-env",
+                    format!(
+                        "unknown recipe {name:?}; expected one of {}",
+                        Self::NAMES.join(", ")
+                    ),
+                )
+            }),
+        }
+    }
+}
+
 /// Where a configuration's defaults come from: one of procl's environments, or data from
-/// elsewhere with `action_dim` components per action, trained with the recipe of the
-/// environment `recipe` (default: [`TrainConfig::custom_preset`]'s generic one).
+/// elsewhere with `action_dim` components per action, trained with `recipe`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ConfigBase {
     Env(EnvKind),
     Custom {
         action_dim: usize,
         control_dt_s: f64,
-        recipe: Option<EnvKind>,
+        recipe: Recipe,
+        /// The hub the dataset's frames turn about, when the recipe was chosen from them.
+        hub: Option<Hub>,
     },
 }
 
 impl ConfigBase {
     /// The base for a dataset: its environment's, or custom with `recipe` (which only custom
-    /// data may choose).
-    pub fn for_dataset(data: &crate::data::Dataset, recipe: Option<EnvKind>) -> Result<Self> {
+    /// data may choose; by default the one its frames call for, [`Recipe::for_frames`]).
+    pub fn for_dataset(data: &crate::data::Dataset, recipe: Option<Recipe>) -> Result<Self> {
         match (data.meta.env, recipe) {
             (Some(env), None) => Ok(Self::Env(env)),
             (Some(env), Some(_)) => Err(Error::config(
                 "preset-env",
                 format!("is for custom data; the dataset is from {env}, whose own preset applies"),
             )),
-            (None, recipe) => Ok(Self::Custom {
-                action_dim: data.action_dim(),
-                control_dt_s: data.meta.control_dt_s,
-                recipe,
-            }),
+            (None, recipe) => {
+                let (recipe, hub) = match recipe {
+                    Some(recipe) => (recipe, None),
+                    None => {
+                        let spread = PixelSpread::of_frames(data.every_frame());
+                        (Recipe::for_frames(&spread), spread.hub())
+                    }
+                };
+                Ok(Self::Custom {
+                    action_dim: data.action_dim(),
+                    control_dt_s: data.meta.control_dt_s,
+                    recipe,
+                    hub,
+                })
+            }
         }
+    }
+
+    /// One line on the recipe custom data trains with and why (`None` for an environment's
+    /// data, whose preset applies).
+    pub fn describe(&self) -> Option<String> {
+        let Self::Custom { recipe, hub, .. } = self else {
+            return None;
+        };
+        Some(match (recipe, hub) {
+            (Recipe::Env(env), Some(hub)) => {
+                let [col, row] = hub.pixels();
+                format!(
+                    "custom data: the frames turn about a hub at pixel ({col:.1}, {row:.1}), so the {env} recipe trains it (polar keypoints about the hub); --preset-env generic for the generic one"
+                )
+            }
+            (Recipe::Generic, _) => {
+                "custom data: the generic recipe (the frames turn about no hub)".into()
+            }
+            (Recipe::Env(env), None) => format!("custom data: the {env} recipe"),
+        })
     }
 
     fn preset(self, preset: Preset, method: Method) -> TrainConfig {
@@ -193,6 +268,7 @@ impl ConfigBase {
                 action_dim,
                 control_dt_s,
                 recipe,
+                ..
             } => TrainConfig::custom_preset(preset, method, action_dim, control_dt_s, recipe),
         }
     }
@@ -326,21 +402,23 @@ impl TrainConfig {
     }
 
     /// The configuration of `preset` for `method` on data from a system procl does not
-    /// simulate, with `action_dim` action components every `control_dt_s` seconds: the recipe of the environment `recipe`
-    /// with its latent resized to `action_dim`, or by default the generic recipe, which is the
-    /// point mass's (Cartesian keypoints, a linear map to the latent) with the latent oriented
-    /// by its response to the action, since nothing else about the system is known.
+    /// simulate, with `action_dim` action components every `control_dt_s` seconds: `recipe`
+    /// with its latent resized to `action_dim`.
     pub fn custom_preset(
         preset: Preset,
         method: Method,
         action_dim: usize,
         control_dt_s: f64,
-        recipe: Option<EnvKind>,
+        recipe: Recipe,
     ) -> Self {
-        let mut config = Self::preset(preset, method, recipe.unwrap_or(EnvKind::PointMass));
+        let env = match recipe {
+            Recipe::Generic => EnvKind::PointMass,
+            Recipe::Env(env) => env,
+        };
+        let mut config = Self::preset(preset, method, env);
         config.env = None;
         config.control_dt_s = Some(control_dt_s);
-        if recipe.is_none() && config.orientation_search_every > 0 {
+        if recipe == Recipe::Generic && config.orientation_search_every > 0 {
             config.orientation_criterion = OrientationCriterion::ActionResponse;
         }
         config.model.encoder.latent_dim = action_dim;
@@ -589,6 +667,44 @@ pub(crate) fn merge(base: &mut toml::Table, over: toml::Table) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn recipes_parse_by_name_and_frames_without_a_hub_get_the_generic_one() {
+        assert_eq!("generic".parse::<Recipe>().unwrap(), Recipe::Generic);
+        assert_eq!(
+            "reacher".parse::<Recipe>().unwrap(),
+            Recipe::Env(EnvKind::Reacher)
+        );
+        let err = "arm".parse::<Recipe>().unwrap_err().to_string();
+        assert!(
+            err.contains("preset-env") && err.contains("generic, point-mass"),
+            "{err}"
+        );
+        let still = [7u8; crate::envs::FRAME_BYTES];
+        let spread = PixelSpread::of_frames(std::iter::repeat_n(&still[..], 3));
+        assert_eq!(Recipe::for_frames(&spread), Recipe::Generic);
+        // The arm's recipe is the reacher's, resized to the data's action and period.
+        let arm = TrainConfig::custom_preset(
+            Preset::Procl,
+            Method::Procl,
+            3,
+            0.05,
+            Recipe::Env(EnvKind::Reacher),
+        );
+        let reacher = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        assert_eq!(arm.model.encoder.head, reacher.model.encoder.head);
+        assert_eq!(arm.loss, reacher.loss);
+        assert_eq!(
+            (arm.model.encoder.latent_dim, arm.control_dt_s),
+            (3, Some(0.05))
+        );
+        let generic =
+            TrainConfig::custom_preset(Preset::Procl, Method::Procl, 2, 0.05, Recipe::Generic);
+        assert_eq!(
+            generic.orientation_criterion,
+            OrientationCriterion::ActionResponse
+        );
+    }
 
     #[test]
     fn fetch_uses_the_papers_lyapunov_dt() {

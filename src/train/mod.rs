@@ -12,7 +12,7 @@ pub use batches::loss_inputs;
 pub(crate) use batches::{normal_tensor, step_rng};
 pub(crate) use config::merge;
 pub use config::{
-    ConfigBase, Method, Preset, TrainConfig, config_from_table, config_from_toml,
+    ConfigBase, Method, Preset, Recipe, TrainConfig, config_from_table, config_from_toml,
     read_config_table, training_budget,
 };
 pub use nvae::{EpisodeSplit, PlateauRule};
@@ -26,7 +26,7 @@ use std::time::Instant;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
-use crate::data::Dataset;
+use crate::data::{Dataset, PixelSpread};
 use crate::error::{Error, Result};
 use crate::losses::{LOSS_NAMES, StepValues, procl_loss};
 use crate::model::{ProclModel, TrunkTape};
@@ -90,10 +90,8 @@ impl Objective for ProclObjective<'_> {
     const METRICS: &'static [&'static str] = &LOSS_NAMES;
 
     fn prepare(&mut self, mut model: ProclModel) -> ProclModel {
-        let data = self.data;
-        let every_frame =
-            (0..data.episodes()).flat_map(|e| (0..=data.steps()).map(move |t| data.frame(e, t)));
-        model.encoder = model.encoder.place_polar_cut(every_frame);
+        let spread = PixelSpread::of_frames(self.data.every_frame());
+        model.encoder = model.encoder.place_polar_frame(&spread);
         if let Some(target_std) = self.config.model.encoder.init_latent_std
             && target_std > 0.0
         {

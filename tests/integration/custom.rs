@@ -1,5 +1,6 @@
 //! Data from elsewhere: frames, actions and a control period make a dataset that trains with
-//! the generic recipe (or an environment's), without true states.
+//! the recipe its frames call for (the generic one, or the arm's when they turn about a hub),
+//! or an environment's, without true states.
 
 use std::path::Path;
 
@@ -126,6 +127,7 @@ fn custom_data_trains_from_the_command_line_without_state_diagnostics() {
     let out = succeeds(&args);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("latent diagnostics skipped"), "{stdout}");
+    assert!(stdout.contains("the generic recipe"), "{stdout}");
     let config: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("config.json")).unwrap()).unwrap();
     assert_eq!(config["env"], "custom");
@@ -221,7 +223,8 @@ fn a_custom_action_dimension_sizes_the_latent() {
 }
 
 #[test]
-fn a_variant_recorded_as_custom_trains_with_the_generic_recipe_and_evaluates_in_its_simulator() {
+fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_evaluates_in_its_simulator()
+ {
     let dir = tempfile::tempdir().unwrap();
     let variant = dir.path().join("variant.toml");
     std::fs::write(
@@ -236,7 +239,7 @@ fn a_variant_recorded_as_custom_trains_with_the_generic_recipe_and_evaluates_in_
             "--env-config",
             path_str(&variant),
             "--transitions",
-            "60",
+            "400",
             "--episode-len",
             "10",
             "--out",
@@ -260,7 +263,7 @@ fn a_variant_recorded_as_custom_trains_with_the_generic_recipe_and_evaluates_in_
         "--env",
         "reacher",
         "--transitions",
-        "60",
+        "400",
         "--episode-len",
         "10",
         "--out",
@@ -271,9 +274,10 @@ fn a_variant_recorded_as_custom_trains_with_the_generic_recipe_and_evaluates_in_
     assert_eq!(plain.actions, loaded.actions);
     assert_ne!(plain.obs, loaded.obs);
 
-    // Training reads nothing of the simulator: the generic recipe for data from elsewhere.
+    // Training reads nothing of the simulator, only the frames: they turn about the moved
+    // shoulder, so the arm's recipe trains them, with polar keypoints about it.
     let run = dir.path().join("run");
-    succeeds(&[
+    let out = succeeds(&[
         "train",
         "--data",
         path_str(&data),
@@ -282,9 +286,39 @@ fn a_variant_recorded_as_custom_trains_with_the_generic_recipe_and_evaluates_in_
         "--steps",
         "2",
     ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("turn about a hub at pixel"), "{stdout}");
     let config: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("config.json")).unwrap()).unwrap();
     assert_eq!(config["env"], "custom");
+    assert_eq!(config["model"]["encoder"]["head"]["polar"], true);
+    let (_, model) = procl::train::RunPaths::new(&run)
+        .load_trained(&procl::model::cpu_device())
+        .unwrap();
+    let procl::train::TrainedModel::Procl(model) = model else {
+        panic!("a ProCL run");
+    };
+    // The shoulder is at pixel (35.6, 34.6), image coordinates (0.1125, 0.0804).
+    let [x, y] = model.encoder.polar_centre().unwrap();
+    assert!(
+        (x - 0.1125).abs() < 1.0 / 32.0 && (y - 0.0804).abs() < 1.0 / 32.0,
+        "{x} {y}"
+    );
+    let generic = dir.path().join("generic");
+    succeeds(&[
+        "train",
+        "--data",
+        path_str(&data),
+        "--out",
+        path_str(&generic),
+        "--steps",
+        "1",
+        "--preset-env",
+        "generic",
+    ]);
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(generic.join("config.json")).unwrap())
+            .unwrap();
     assert_eq!(config["model"]["encoder"]["head"]["polar"], false);
     // Evaluation steps the recorded variant.
     succeeds(&["eval", "--run", path_str(&run), "--episodes", "2"]);
