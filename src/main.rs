@@ -137,9 +137,12 @@ enum Command {
     },
     /// Generate demonstration trajectories (smooth paths followed by the oracle) for tracking.
     Demonstrate {
-        /// Environment: point-mass | reacher | fetch.
+        /// Environment: point-mass | reacher | fetch (or the one --env-config configures).
+        #[arg(long, required_unless_present = "env_config")]
+        env: Option<String>,
+        /// A TOML file configuring a variant of the environment, as for `procl collect`.
         #[arg(long)]
-        env: String,
+        env_config: Option<PathBuf>,
         /// Path family: circle | figure-eight | spline.
         #[arg(long, default_value = "circle")]
         shape: String,
@@ -248,9 +251,12 @@ enum Command {
     },
     /// Render a strip of frames from a random episode to a PNG.
     Render {
-        /// Environment: point-mass | reacher | fetch.
+        /// Environment: point-mass | reacher | fetch (or the one --env-config configures).
+        #[arg(long, required_unless_present = "env_config")]
+        env: Option<String>,
+        /// A TOML file configuring a variant of the environment, as for `procl collect`.
         #[arg(long)]
-        env: String,
+        env_config: Option<PathBuf>,
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Number of frames in the strip.
@@ -564,6 +570,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Demonstrate {
             env,
+            env_config,
             shape,
             episodes,
             steps,
@@ -571,10 +578,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             out,
             force,
         } => {
-            let env: EnvKind = env.parse()?;
+            let env_config = resolve_env_config(env.as_deref(), env_config.as_deref())?;
+            let env = env_config.kind();
             let shape: procl::control::PathShape = shape.parse()?;
             procl::check_writable(&out, force)?;
             let config = procl::control::ReferenceConfig {
+                env: env_config,
                 episodes,
                 steps,
                 ..procl::control::ReferenceConfig::new(env, shape, seed)
@@ -822,15 +831,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Render {
             env,
+            env_config,
             seed,
             frames,
             scale,
             out,
             force,
         } => {
-            let env: EnvKind = env.parse()?;
+            let env_config = resolve_env_config(env.as_deref(), env_config.as_deref())?;
+            let env = env_config.kind();
             procl::check_writable(&out, force)?;
-            let image = procl::data::render_strip(env, seed, frames, scale)
+            let image = procl::data::render_strip(&env_config, seed, frames, scale)
                 .with_context(|| format!("rendering {env}"))?;
             image.save_png(&out, force)?;
             println!(

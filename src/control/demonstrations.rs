@@ -14,7 +14,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::oracle_gains;
 use crate::data::{Dataset, Recording};
-use crate::envs::{EnvKind, State};
+use crate::envs::{EnvConfig, EnvKind, State};
 use crate::error::{Error, Result};
 
 /// The family of reference paths.
@@ -57,7 +57,8 @@ impl std::str::FromStr for PathShape {
 /// What to generate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReferenceConfig {
-    pub env: EnvKind,
+    /// The environment, the default configuration or a variant.
+    pub env: EnvConfig,
     pub shape: PathShape,
     /// Number of demonstrations (episodes), each a different random path of the shape.
     pub episodes: usize,
@@ -71,7 +72,7 @@ impl ReferenceConfig {
     /// 4 demonstrations of 500 steps (10 s on both 2D envs, 20 s on Fetch).
     pub fn new(env: EnvKind, shape: PathShape, seed: u64) -> Self {
         Self {
-            env,
+            env: env.into(),
             shape,
             episodes: 4,
             steps: 500,
@@ -229,10 +230,11 @@ pub fn generate_reference(
     if config.steps < 2 {
         return Err(Error::config("steps", "must be at least 2"));
     }
+    config.env.validate()?;
     let mut env = config.env.make();
     let (du, dt) = (env.action_dim(), env.control_dt_s());
     let ranges = env.config_ranges();
-    let expert = oracle_gains(config.env);
+    let expert = oracle_gains(config.env.kind());
     let steps = config.steps;
     let mut recording = Recording::new(env.as_ref(), config.episodes, steps);
     let mut u = vec![0.0; du];
@@ -254,7 +256,9 @@ pub fn generate_reference(
         progress(episode + 1);
     }
     let source = format!("demonstration:{}", config.shape.name());
-    recording.finish(dt, config.seed, source)
+    let mut data = recording.finish(dt, config.seed, source)?;
+    data.meta.env_config = (!config.env.is_default()).then(|| config.env.clone());
+    Ok(data)
 }
 
 #[cfg(test)]

@@ -195,9 +195,9 @@ pub fn collect(config: &CollectConfig, mut progress: impl FnMut(usize)) -> Resul
 pub const STRIP_STRIDE: usize = 10;
 
 /// Renders `frames` frames (every [`STRIP_STRIDE`]th step) of a seeded random-control episode
-/// side by side, each upscaled `scale` times: what a model trained on `kind` sees.
+/// side by side, each upscaled `scale` times: what a model trained on `env` sees.
 pub fn render_strip(
-    kind: EnvKind,
+    env: &EnvConfig,
     seed: u64,
     frames: usize,
     scale: usize,
@@ -205,7 +205,10 @@ pub fn render_strip(
     if frames == 0 || scale == 0 {
         return Err(Error::config("frames/scale", "must be at least 1"));
     }
-    let mut config = CollectConfig::new(kind, seed);
+    let mut config = CollectConfig {
+        env: env.clone(),
+        ..CollectConfig::new(env.kind(), seed)
+    };
     config.transitions = ((frames - 1) * STRIP_STRIDE).max(2);
     config.episode_len = config.transitions;
     let data = collect(&config, |_| {})?;

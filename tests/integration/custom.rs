@@ -331,6 +331,56 @@ fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_e
     );
     assert_eq!(report["protocol"]["distance_unit"], "rad (joint space)");
 
+    // The variant renders, and its demonstrations are tracked by the run trained on it; the
+    // default reacher's are refused.
+    let strip = dir.path().join("strip.png");
+    succeeds(&[
+        "render",
+        "--env-config",
+        path_str(&variant),
+        "--frames",
+        "2",
+        "--out",
+        path_str(&strip),
+    ]);
+    assert!(strip.exists());
+    let demo = |extra: &[&str], out: &Path| {
+        let mut args = vec![
+            "demonstrate",
+            "--episodes",
+            "1",
+            "--steps",
+            "20",
+            "--out",
+            path_str(out),
+        ];
+        args.extend_from_slice(extra);
+        args.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    let variant_demo = dir.path().join("variant-demo.npz");
+    let args = demo(&["--env-config", path_str(&variant)], &variant_demo);
+    succeeds(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    succeeds(&[
+        "track",
+        "--run",
+        path_str(&run),
+        "--demo",
+        path_str(&variant_demo),
+    ]);
+    let plain_demo = dir.path().join("plain-demo.npz");
+    let args = demo(&["--env", "reacher"], &plain_demo);
+    succeeds(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    fails_with(
+        &[
+            "track",
+            "--run",
+            path_str(&run),
+            "--demo",
+            path_str(&plain_demo),
+        ],
+        "another configuration of reacher",
+    );
+
     // A file for another environment than --env, and an arm out of view, are refused by name.
     let args = collect(&["--env", "point-mass"], &dir.path().join("x.npz"));
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
