@@ -433,6 +433,22 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     toml::to_string(config)?.trim_end()
                 );
             }
+            let spread = procl::data::PixelSpread::of_frames(dataset.every_frame());
+            if let Some(hub) = spread.hub_candidate() {
+                let [col, row] = hub.pixels();
+                println!(
+                    "{} pixel ({col:.2}, {row:.2}): radial R^2 {:.3} (a hub from {}), core spread {:.3} of the peak (a hub up to {})",
+                    if hub.is_accepted() {
+                        "frames turn about a hub at"
+                    } else {
+                        "frames turn about no hub; the likeliest centre is"
+                    },
+                    hub.radial_r2,
+                    procl::data::HUB_MIN_RADIAL_R2,
+                    hub.core_share,
+                    procl::data::HUB_MAX_CORE_SHARE
+                );
+            }
         }
         Command::Train {
             data,

@@ -45,6 +45,11 @@ pub struct Hub {
 }
 
 impl Hub {
+    /// Whether this candidate is a hub: [`HUB_MIN_RADIAL_R2`] and [`HUB_MAX_CORE_SHARE`] hold.
+    pub fn is_accepted(&self) -> bool {
+        self.radial_r2 >= HUB_MIN_RADIAL_R2 && self.core_share <= HUB_MAX_CORE_SHARE
+    }
+
     /// The hub in pixels from the frame's top-left corner (`(32, 32)` is its centre).
     pub fn pixels(&self) -> [f64; 2] {
         self.centre.map(|c| (c + 1.0) * FRAME_PX as f64 / 2.0)
@@ -78,13 +83,18 @@ impl PixelSpread {
         Self { std }
     }
 
-    /// The point the frames turn about, if they turn about one: the centre about which the
-    /// spread is best explained by a function of the distance alone (a piecewise-linear radial
-    /// profile with 1-pixel knots, fitted by least squares; searched on a 1-pixel grid, then
-    /// on a quarter-pixel grid about the best), accepted when that profile explains at least
-    /// [`HUB_MIN_RADIAL_R2`] of the variance and the core about it is quiet
-    /// ([`HUB_MAX_CORE_SHARE`]): the base of an arm is covered in every frame.
+    /// The point the frames turn about, if they turn about one: the [`Self::hub_candidate`]
+    /// when its profile explains at least [`HUB_MIN_RADIAL_R2`] of the variance and the core
+    /// about it is quiet ([`HUB_MAX_CORE_SHARE`]): the base of an arm is covered in every frame.
     pub fn hub(&self) -> Option<Hub> {
+        self.hub_candidate().filter(Hub::is_accepted)
+    }
+
+    /// The centre about which the spread is best explained by a function of the distance alone
+    /// (a piecewise-linear radial profile with 1-pixel knots, fitted by least squares; searched
+    /// on a 1-pixel grid, then on a quarter-pixel grid about the best), whether or not it is a
+    /// hub; `None` for frames that never change.
+    pub fn hub_candidate(&self) -> Option<Hub> {
         let total = self.total_variance();
         if total <= 0.0 {
             return None;
@@ -101,13 +111,11 @@ impl PixelSpread {
             .map(|c| (self.radial_fit(c, total), c))
             .max_by(|a, b| a.0.0.total_cmp(&b.0.0))?;
         let ((radial_r2, profile_peak), pixels) = fine;
-        let core_share = self.core_mean(pixels) / profile_peak.max(f64::MIN_POSITIVE);
-        let hub = Hub {
+        Some(Hub {
             centre: pixels.map(|p| 2.0 * p / FRAME_PX as f64 - 1.0),
             radial_r2,
-            core_share,
-        };
-        (radial_r2 >= HUB_MIN_RADIAL_R2 && core_share <= HUB_MAX_CORE_SHARE).then_some(hub)
+            core_share: self.core_mean(pixels) / profile_peak.max(f64::MIN_POSITIVE),
+        })
     }
 
     /// The unit direction (image coordinates) about `centre` in which the frames change

@@ -113,6 +113,7 @@ fn custom_data_trains_from_the_command_line_without_state_diagnostics() {
     let info = String::from_utf8_lossy(&info.stdout);
     assert!(info.contains("custom (imported)"), "{info}");
     assert!(info.contains("no true states"), "{info}");
+    assert!(info.contains("frames turn about no hub"), "{info}");
 
     let run = dir.path().join("run");
     let args = [
