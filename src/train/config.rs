@@ -351,7 +351,8 @@ impl TrainConfig {
             };
         }
         if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
-            // The shoulder is a revolute joint at the image centre: polar keypoints about it,
+            // The shoulder is a revolute joint: polar keypoints about it (the hub the frames
+            // turn about, placed before training by `Encoder::place_polar_frame`),
             // the angles between keypoints (entering from 0, faded at the angle cut) over 32x32
             // cells, a tanh layer, a latent started at unit spread and held there by a variance
             // floor, orientation by the action response, and the risk on the standardised latent
@@ -424,7 +425,7 @@ impl TrainConfig {
         config.model.encoder.latent_dim = action_dim;
         config.model.dynamics.latent_dim = action_dim;
         if let Some(nvae) = &mut config.nvae {
-            *nvae = NvaeConfig::for_action_dim(action_dim);
+            nvae.latent_dim = action_dim;
         }
         config
     }

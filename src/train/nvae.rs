@@ -13,7 +13,7 @@ use super::{Objective, RunPaths, TrainConfig, normal_tensor, step_rng, truncate_
 use crate::baselines::nvae::{
     ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, VALIDATION_NAMES, elbo_loss,
 };
-use crate::data::Dataset;
+use crate::data::{Dataset, PixelSpread};
 use crate::error::{Error, Result};
 use crate::losses::StepValues;
 use crate::model::{TrunkTape, frames_to_tensor};
@@ -248,6 +248,14 @@ fn validation_batch<'a>(
 impl Objective for NvaeObjective<'_> {
     type Model = NvaeModel;
     const METRICS: &'static [&'static str] = &ELBO_NAMES;
+
+    fn prepare(&mut self, mut model: NvaeModel) -> NvaeModel {
+        // The same polar frame as ProCL's, so that both methods see the arm from its shoulder.
+        model.encoder = model
+            .encoder
+            .place_polar_frame(&PixelSpread::of_frames(self.data.every_frame()));
+        model
+    }
 
     fn begin(&mut self, resumed_at: Option<u64>) -> Result<()> {
         if self.validation.is_none() {

@@ -305,6 +305,26 @@ fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_e
         (x - 0.1125).abs() < 1.0 / 32.0 && (y - 0.0804).abs() < 1.0 / 32.0,
         "{x} {y}"
     );
+    // The NewtonianVAE baseline gets the same recipe's head about the same hub.
+    let nvae = dir.path().join("nvae");
+    succeeds(&[
+        "train",
+        "--data",
+        path_str(&data),
+        "--out",
+        path_str(&nvae),
+        "--method",
+        "nvae",
+        "--steps",
+        "1",
+    ]);
+    let (_, model) = procl::train::RunPaths::new(&nvae)
+        .load_trained(&procl::model::cpu_device())
+        .unwrap();
+    let procl::train::TrainedModel::Nvae(model) = model else {
+        panic!("a NewtonianVAE run");
+    };
+    assert_eq!(model.encoder.polar_centre(), Some([x, y]));
     let generic = dir.path().join("generic");
     succeeds(&[
         "train",

@@ -21,6 +21,18 @@ pub struct GaussianEncoder {
 }
 
 impl GaussianEncoder {
+    /// Places a polar head's centre and cut from the data, as [`Encoder::place_polar_frame`].
+    pub fn place_polar_frame(self, spread: &crate::data::PixelSpread) -> Self {
+        Self {
+            net: self.net.place_polar_frame(spread),
+        }
+    }
+
+    /// The polar head's centre, as [`Encoder::polar_centre`].
+    pub fn polar_centre(&self) -> Option<[f32; 2]> {
+        self.net.polar_centre()
+    }
+
     /// `frames [n, 3, 64, 64]` -> `(mean, log_std)`, `[n, du]` each.
     pub fn posterior(&self, frames: Tensor<4>) -> (Tensor<2>, Tensor<2>) {
         let out = self.net.forward(frames); // [n, 2 du]
