@@ -62,8 +62,8 @@ def collect(
     Defaults are the command line's: the paper's dataset size (10,000 transitions; Fetch
     50,000) in the environment's episodes. ``variant`` changes fields of the environment's
     configuration (for the reacher e.g. ``{"base_m": [0.035, -0.025]}``), as ``procl collect
-    --env-config`` does; ``as_custom`` records the data as custom, so that ``train`` uses the
-    generic recipe while evaluation runs in the recorded simulator. Returns what ``info``
+    --env-config`` does; ``as_custom`` records the data as custom, so that ``train`` picks its
+    recipe from the frames alone while evaluation runs in the recorded simulator. Returns what ``info``
     returns.
     """
     variant_json = None if variant is None else json.dumps(dict(variant))

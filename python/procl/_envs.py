@@ -9,7 +9,8 @@ is truncated at its horizon (500 steps; Fetch 250).
 
 from __future__ import annotations
 
-from typing import Any, Optional, Sequence, Union
+import json
+from typing import Any, Mapping, Optional, Sequence, Union
 
 import gymnasium
 import numpy as np
@@ -36,6 +37,10 @@ def _env_name(name: str) -> str:
     )
 
 
+def _variant_json(variant: Optional[Mapping[str, Any]]) -> Optional[str]:
+    return None if variant is None else json.dumps(dict(variant))
+
+
 def _action_space(action_dim: int) -> spaces.Box:
     return spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
 
@@ -43,6 +48,9 @@ def _action_space(action_dim: int) -> spaces.Box:
 class ReachEnv(gymnasium.Env):
     """One procl environment as a goal-reaching task (see the module docstring).
 
+    ``variant`` changes fields of the environment's configuration, as ``procl collect
+    --env-config`` does (for the reacher e.g. ``{"base_m": [0.035, -0.025]}``), so that a
+    controller trained on a variant's data runs in that variant.
     ``reset(options={"start_q": [...], "goal_q": [...]})`` sets the start or goal
     configuration instead of drawing it. ``info`` holds the true state ``q``, ``qd``, the goal
     ``goal_q``, ``goal_frame``, ``distance`` and ``is_success``.
@@ -55,10 +63,11 @@ class ReachEnv(gymnasium.Env):
         env: str = "point-mass",
         render_mode: Optional[str] = None,
         horizon: Optional[int] = None,
+        variant: Optional[Mapping[str, Any]] = None,
     ):
         if render_mode not in (None, "rgb_array"):
             raise _procl.ProclError(f"render_mode `{render_mode}`: procl renders rgb_array only")
-        self._core = _procl.ReachEnv(_env_name(env), horizon)
+        self._core = _procl.ReachEnv(_env_name(env), horizon, _variant_json(variant))
         self.observation_space = FRAME_SPACE
         self.action_space = _action_space(self._core.action_dim)
         self.render_mode = render_mode
@@ -111,8 +120,9 @@ class ReachVectorEnv(VectorEnv):
         num_envs: int = 1,
         render_mode: Optional[str] = None,
         horizon: Optional[int] = None,
+        variant: Optional[Mapping[str, Any]] = None,
     ):
-        self._core = _procl.ReachVecEnv(_env_name(env), num_envs, horizon)
+        self._core = _procl.ReachVecEnv(_env_name(env), num_envs, horizon, _variant_json(variant))
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.single_observation_space = FRAME_SPACE

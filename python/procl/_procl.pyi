@@ -18,7 +18,9 @@ class ProclError(Exception):
 class ReachEnv:
     """One environment as a reach task (the core of ``procl.ReachEnv``)."""
 
-    def __init__(self, env: str, horizon: Optional[int] = None) -> None: ...
+    def __init__(
+        self, env: str, horizon: Optional[int] = None, variant_json: Optional[str] = None
+    ) -> None: ...
     def reset(
         self, seed: Optional[int] = None, options: Optional[dict[str, Any]] = None
     ) -> tuple[npt.NDArray[np.uint8], dict[str, Any]]: ...
@@ -43,7 +45,13 @@ class ReachVecEnv:
     """``n`` copies stepped together with next-step autoreset (the core of
     ``procl.ReachVectorEnv``)."""
 
-    def __init__(self, env: str, n: int, horizon: Optional[int] = None) -> None: ...
+    def __init__(
+        self,
+        env: str,
+        n: int,
+        horizon: Optional[int] = None,
+        variant_json: Optional[str] = None,
+    ) -> None: ...
     def reset(
         self, seeds: Sequence[int]
     ) -> tuple[npt.NDArray[np.uint8], dict[str, npt.NDArray[Any]]]: ...

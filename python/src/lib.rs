@@ -77,8 +77,9 @@ struct StepOutcome {
 }
 
 impl ReachTask {
-    fn new(kind: EnvKind, horizon: Option<usize>) -> Self {
-        let sim = kind.make();
+    fn new(config: &procl::envs::EnvConfig, horizon: Option<usize>) -> Self {
+        let kind = config.kind();
+        let sim = config.make();
         let mut protocol = ReachConfig::for_env(kind, 0);
         if let Some(h) = horizon {
             protocol.horizon = h;
@@ -174,6 +175,16 @@ fn env_kind(name: &str) -> PyResult<EnvKind> {
     name.parse().map_err(py_err)
 }
 
+/// The configuration of the environment `name`, with the fields of the JSON object
+/// `variant_json` changed when given.
+fn env_config(name: &str, variant_json: Option<&str>) -> PyResult<procl::envs::EnvConfig> {
+    let kind = env_kind(name)?;
+    match variant_json {
+        Some(fields) => env_variant(kind, fields).map_err(py_err),
+        None => Ok(kind.into()),
+    }
+}
+
 fn optional_config(options: Option<&Bound<'_, PyDict>>, key: &str) -> PyResult<Option<Vec<f64>>> {
     match options.map(|o| o.get_item(key)).transpose()?.flatten() {
         Some(value) if !value.is_none() => Ok(Some(value.extract()?)),
@@ -190,10 +201,10 @@ struct ReachEnv {
 #[pymethods]
 impl ReachEnv {
     #[new]
-    #[pyo3(signature = (env, horizon=None))]
-    fn new(env: &str, horizon: Option<usize>) -> PyResult<Self> {
+    #[pyo3(signature = (env, horizon=None, variant_json=None))]
+    fn new(env: &str, horizon: Option<usize>, variant_json: Option<&str>) -> PyResult<Self> {
         Ok(Self {
-            task: ReachTask::new(env_kind(env)?, horizon),
+            task: ReachTask::new(&env_config(env, variant_json)?, horizon),
         })
     }
 
@@ -329,14 +340,19 @@ impl ReachVecEnv {
 #[pymethods]
 impl ReachVecEnv {
     #[new]
-    #[pyo3(signature = (env, n, horizon=None))]
-    fn new(env: &str, n: usize, horizon: Option<usize>) -> PyResult<Self> {
+    #[pyo3(signature = (env, n, horizon=None, variant_json=None))]
+    fn new(
+        env: &str,
+        n: usize,
+        horizon: Option<usize>,
+        variant_json: Option<&str>,
+    ) -> PyResult<Self> {
         if n == 0 {
             return Err(py_err("`n` must be at least 1"));
         }
-        let kind = env_kind(env)?;
+        let config = env_config(env, variant_json)?;
         Ok(Self {
-            tasks: (0..n).map(|_| ReachTask::new(kind, horizon)).collect(),
+            tasks: (0..n).map(|_| ReachTask::new(&config, horizon)).collect(),
             done: vec![false; n],
         })
     }

@@ -159,6 +159,27 @@ def test_a_variant_collected_as_custom_records_its_simulator(tmp_path):
     assert not np.array_equal(np.load(data)["obs"], np.load(tmp_path / "plain.npz")["obs"])
 
 
+def test_a_variant_runs_as_a_gymnasium_environment():
+    # The shoulder moved 0.035 m right and 0.025 m towards the bottom of the image: at the same
+    # configuration the arm's pixels move by 3.6 and 2.6 px (103 px per metre).
+    def arm_centroid(frame):
+        rows, cols = np.nonzero(frame[..., 0].astype(int) > frame[..., 2].astype(int) + 40)
+        return np.array([cols.mean(), rows.mean()])
+
+    options = {"start_q": [0.5, 1.0], "goal_q": [0.0, 0.0]}
+    variant = {"base_m": [0.035, -0.025]}
+    plain, _ = procl.make("Reacher-v0").reset(seed=0, options=options)
+    moved, info = procl.make("Reacher-v0", variant=variant).reset(seed=0, options=options)
+    shift = arm_centroid(moved) - arm_centroid(plain)
+    assert np.allclose(shift, [3.6, 2.6], atol=0.6), shift
+    assert np.array_equal(info["q"], [0.5, 1.0])
+    envs = procl.make_vec("Reacher-v0", 2, variant=variant)
+    frames, _ = envs.reset(seed=0)
+    assert frames.shape == (2, 64, 64, 3)
+    with pytest.raises(procl.ProclError, match="link1_length_m"):
+        procl.make("Reacher-v0", variant={"link1_length_m": -1.0})
+
+
 def test_bad_input_raises_one_line_errors(tmp_path):
     def raises(fn, needle):
         with pytest.raises(procl.ProclError) as caught:
