@@ -437,7 +437,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             if let Some(hub) = spread.hub_candidate() {
                 let [col, row] = hub.pixels();
                 println!(
-                    "{} pixel ({col:.2}, {row:.2}): radial R^2 {:.3} (a hub from {}), core spread {:.3} of the peak (a hub up to {})",
+                    "{} pixel (column {col:.2}, row {row:.2}; (32, 32) is the centre): radial R^2 {:.3} (a hub from {}), core spread {:.3} of the peak (a hub up to {})",
                     if hub.is_accepted() {
                         "frames turn about a hub at"
                     } else {

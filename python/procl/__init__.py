@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping, Optional, Union
 
 from . import _procl
-from ._envs import ENV_IDS, ReachEnv, ReachVectorEnv, make, make_vec
+from ._envs import ENV_IDS, ReachEnv, ReachVectorEnv, _variant_json, make, make_vec
 from ._procl import Controller, ProclError
 
 __all__ = [
@@ -63,10 +63,10 @@ def collect(
     50,000) in the environment's episodes. ``variant`` changes fields of the environment's
     configuration (for the reacher e.g. ``{"base_m": [0.035, -0.025]}``), as ``procl collect
     --env-config`` does; ``as_custom`` records the data as custom, so that ``train`` picks its
-    recipe from the frames alone while evaluation runs in the recorded simulator. Returns what ``info``
-    returns.
+    recipe from the frames alone while evaluation runs in the recorded simulator. Returns what
+    ``info`` returns.
     """
-    variant_json = None if variant is None else json.dumps(dict(variant))
+    variant_json = _variant_json(variant)
     return _procl.collect(env, os.fspath(out), seed, transitions, episode_len, force,
                           variant_json, as_custom)
 

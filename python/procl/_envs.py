@@ -38,7 +38,11 @@ def _env_name(name: str) -> str:
 
 
 def _variant_json(variant: Optional[Mapping[str, Any]]) -> Optional[str]:
-    return None if variant is None else json.dumps(dict(variant))
+    """A variant's fields as the JSON object the Rust core reads; numpy values become lists
+    and numbers."""
+    if variant is None:
+        return None
+    return json.dumps(dict(variant), default=lambda value: np.asarray(value).tolist())
 
 
 def _action_space(action_dim: int) -> spaces.Box:

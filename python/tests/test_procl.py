@@ -173,7 +173,7 @@ def test_a_variant_runs_as_a_gymnasium_environment():
     shift = arm_centroid(moved) - arm_centroid(plain)
     assert np.allclose(shift, [3.6, 2.6], atol=0.6), shift
     assert np.array_equal(info["q"], [0.5, 1.0])
-    envs = procl.make_vec("Reacher-v0", 2, variant=variant)
+    envs = procl.make_vec("Reacher-v0", 2, variant={"base_m": np.array([0.035, -0.025])})
     frames, _ = envs.reset(seed=0)
     assert frames.shape == (2, 64, 64, 3)
     with pytest.raises(procl.ProclError, match="link1_length_m"):

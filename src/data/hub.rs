@@ -8,13 +8,14 @@
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 
 /// Smallest share of the spread's variance the radial profile about a hub must explain. An
-/// arm's spread is a function of the distance from its base (0.95 for procl's reacher, with the
-/// base at the centre or moved off it); a moving ball's or a gripper's is not (0.20 and 0.68
+/// arm's spread is a function of the distance from its base (0.95-0.98 for procl's reacher, with
+/// the base at the centre or moved off it); a moving ball's or a gripper's is not (0.20 and 0.68
 /// for the point mass and Fetch).
 pub const HUB_MIN_RADIAL_R2: f64 = 0.8;
 /// Largest mean spread within [`HUB_CORE_RADIUS_PX`] of a hub, as a share of the radial
-/// profile's peak. An arm's base is covered in every frame, so it does not change (0.02-0.04
-/// for the reacher); where a ball or a gripper passes, nothing is always covered (0.95, 1.0).
+/// profile's peak. An arm's base is covered in every frame, so it does not change (0.04-0.07
+/// for the reacher and two variants); where a ball or a gripper passes, nothing is always
+/// covered (0.89 and 0.99 for the point mass and Fetch).
 pub const HUB_MAX_CORE_SHARE: f64 = 0.25;
 /// Radius, pixels, of the core whose spread [`HUB_MAX_CORE_SHARE`] bounds.
 pub const HUB_CORE_RADIUS_PX: f64 = 1.5;

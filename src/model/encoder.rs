@@ -300,8 +300,8 @@ pub struct KeypointHead {
 
 /// Name of the polar head's non-trained axis parameter.
 pub(crate) const POLAR_AXIS: &str = "polar_axis";
-/// Name of the polar head's non-trained centre parameter. Checkpoints written before it
-/// existed lack it; they load with the image centre, which is what they were trained about.
+/// Name of the polar head's non-trained centre parameter. Checkpoints without it (the shipped
+/// reacher run) load with the image centre `(0, 0)`, the centre they were trained with.
 pub(crate) const POLAR_CENTRE: &str = "polar_centre";
 
 /// A parameter that training leaves alone.

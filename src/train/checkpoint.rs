@@ -149,8 +149,8 @@ impl ModuleMapper for Restore<'_> {
                         .set_require_grad(require_grad)
                 })
             }
-            // Written before polar heads had a centre: they were trained about the image
-            // centre, the parameter's initial value.
+            // A checkpoint without the polar centre was trained about the image centre, the
+            // parameter's initial value.
             None if self.path.last().map(String::as_str) == Some(crate::model::POLAR_CENTRE) => {
                 param
             }

@@ -251,13 +251,15 @@ impl ConfigBase {
             (Recipe::Env(env), Some(hub)) => {
                 let [col, row] = hub.pixels();
                 format!(
-                    "custom data: the frames turn about a hub at pixel ({col:.1}, {row:.1}), so the {env} recipe trains it (polar keypoints about the hub); --preset-env generic for the generic one"
+                    "custom data: the frames turn about a hub at pixel (column {col:.1}, row {row:.1}), so the {env} recipe trains it (polar keypoints about the hub); --preset-env generic for the generic one"
                 )
             }
             (Recipe::Generic, _) => {
                 "custom data: the generic recipe (the frames turn about no hub)".into()
             }
-            (Recipe::Env(env), None) => format!("custom data: the {env} recipe"),
+            (Recipe::Env(env), None) => format!(
+                "custom data: the {env} recipe, as named (a polar head is centred on the hub the frames turn about, or on the image centre without one)"
+            ),
         })
     }
 

@@ -21,8 +21,8 @@ fn every_shipped_run_loads_as_its_environments_procl_run() {
             .unwrap_or_else(|e| panic!("{env}: {e}"));
         assert_eq!(config.env, Some(env));
         assert_eq!(config.method, procl::train::Method::Procl);
-        // The reacher's run was trained before polar heads stored their centre; it loads
-        // with the image centre it was trained about.
+        // The shipped reacher run stores no polar centre; it loads with the image centre it
+        // was trained with.
         let want = (env == EnvKind::Reacher).then_some([0.0, 0.0]);
         let procl::train::TrainedModel::Procl(model) = model else {
             panic!("{env}: a ProCL run loads as ProCL");
