@@ -643,7 +643,20 @@ fn dataset_summary<'py>(
 #[pyfunction]
 fn info<'py>(py: Python<'py>, data: PathBuf) -> PyResult<Bound<'py, PyDict>> {
     let dataset = procl::data::Dataset::load(&data).map_err(py_err)?;
-    dataset_summary(py, &dataset)
+    let summary = dataset_summary(py, &dataset)?;
+    let hub = match procl::data::PixelSpread::of_frames(dataset.every_frame()).hub_candidate() {
+        Some(hub) => {
+            let fields = PyDict::new(py);
+            fields.set_item("pixel", hub.pixels().to_vec())?;
+            fields.set_item("radial_r2", hub.radial_r2)?;
+            fields.set_item("core_share", hub.core_share)?;
+            fields.set_item("accepted", hub.is_accepted())?;
+            Some(fields)
+        }
+        None => None,
+    };
+    summary.set_item("hub", hub)?;
+    Ok(summary)
 }
 
 /// Trains on `data` into the run folder `out`, as `procl train` does: the TOML file

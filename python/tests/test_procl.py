@@ -147,14 +147,17 @@ def test_collect_and_a_newtonian_vae_run_with_pid(tmp_path):
 
 def test_a_variant_collected_as_custom_records_its_simulator(tmp_path):
     data = tmp_path / "variant.npz"
-    summary = procl.collect("reacher", data, transitions=40, episode_len=10,
+    summary = procl.collect("reacher", data, transitions=400, episode_len=10,
                             variant={"base_m": [0.035, -0.025]}, as_custom=True)
     assert summary["env"] == "custom" and summary["config_dim"] == 2
     recorded = json.loads(summary["env_config_json"])
     assert recorded["reacher"]["base_m"] == [0.035, -0.025]
     meta = json.loads(bytes(np.load(data)["meta"]))
     assert meta["env"] == "custom" and meta["env_config"] == recorded
-    plain = procl.collect("reacher", tmp_path / "plain.npz", transitions=40, episode_len=10)
+    # The frames turn about the moved shoulder, at pixel (35.6, 34.6).
+    hub = procl.info(data)["hub"]
+    assert hub["accepted"] and np.allclose(hub["pixel"], [35.6, 34.6], atol=1.0), hub
+    plain = procl.collect("reacher", tmp_path / "plain.npz", transitions=400, episode_len=10)
     assert plain["env_config_json"] is None
     assert not np.array_equal(np.load(data)["obs"], np.load(tmp_path / "plain.npz")["obs"])
 
