@@ -574,11 +574,9 @@ fn collect<'py>(
     variant_json: Option<String>,
     as_custom: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let kind = env_kind(env)?;
-    let mut config = procl::data::CollectConfig::new(kind, seed);
-    if let Some(text) = variant_json {
-        config.env = env_variant(kind, &text).map_err(py_err)?;
-    }
+    let env = env_config(env, variant_json.as_deref())?;
+    let mut config = procl::data::CollectConfig::new(env.kind(), seed);
+    config.env = env;
     config.as_custom = as_custom;
     if let Some(t) = transitions {
         config.transitions = t;
