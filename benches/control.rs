@@ -17,9 +17,14 @@ fn control_step(c: &mut Criterion) {
         .build()
         .expect("rayon pool");
     let mut group = c.benchmark_group("control_step_1thread");
-    for preset in [Preset::Procl, Preset::Paper] {
-        let config: ModelConfig =
-            TrainConfig::preset(preset, Method::Procl, EnvKind::PointMass).model;
+    // The point-mass presets' trunk subsamples twice; the reacher's second convolution keeps
+    // 32x32 maps (stride 1), four times its arithmetic.
+    for (preset, env_kind) in [
+        (Preset::Procl, EnvKind::PointMass),
+        (Preset::Paper, EnvKind::PointMass),
+        (Preset::Procl, EnvKind::Reacher),
+    ] {
+        let config: ModelConfig = TrainConfig::preset(preset, Method::Procl, env_kind).model;
         let device = cpu_device();
         let model = config.init(0, &device).expect("model");
         let law =
@@ -31,7 +36,7 @@ fn control_step(c: &mut Criterion) {
             PdController { kp: 10.0, kd: 2.0 },
             0.02,
         );
-        let mut env = EnvKind::PointMass.make();
+        let mut env = env_kind.make();
         env.reset(0).expect("reset");
         let mut frame = [0u8; FRAME_BYTES];
         env.render(&mut frame);
@@ -42,7 +47,7 @@ fn control_step(c: &mut Criterion) {
         policy.reset(&frame, &state);
         mpc.reset(&frame, &state);
         let mut u = [0.0; 2];
-        let name = format!("{preset:?}").to_lowercase();
+        let name = format!("{preset:?}_{env_kind:?}").to_lowercase();
         group.bench_function(format!("{name}_pd"), |b| {
             pool.install(|| b.iter(|| policy.act(std::hint::black_box(&frame), &state, &mut u)))
         });

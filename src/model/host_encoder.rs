@@ -87,6 +87,7 @@ impl HostConv {
     /// Calls `visit(column, input, len)` for every run of `len` floats that im2col copies from
     /// `input [side * side, in]` at `input` to the columns `[out_side^2, width]` at `column`;
     /// entries no run covers (the padding) are 0 in the columns.
+    #[inline(always)]
     pub fn for_each_patch_run(&self, side: usize, mut visit: impl FnMut(usize, usize, usize)) {
         let cin = self.channels[0];
         let (k, s, p) = (self.kernel, self.stride, self.padding);
@@ -224,10 +225,17 @@ pub(crate) fn soft_argmax(
     let k = sharpness.len();
     let cells = attention.len() / k.max(1);
     let g = grids.len();
-    // Keypoint by keypoint, so each softmax reads a row.
-    for (cell, values) in maps.chunks_exact(k).enumerate() {
-        for (key, &v) in values.iter().enumerate() {
-            attention[key * cells + cell] = v;
+    // Keypoint by keypoint, so each softmax reads a row. The transpose goes in tiles of
+    // TILE cells: one key's writes fill whole cache lines, where writing a cell's K values
+    // at once strides 4 KiB between them and the stores evict each other from L1.
+    const TILE: usize = 16;
+    for (tile, tile_maps) in maps.chunks(TILE * k).enumerate() {
+        let first = tile * TILE;
+        for key in 0..k {
+            let row = &mut attention[key * cells + first..][..tile_maps.len() / k];
+            for (a, values) in row.iter_mut().zip(tile_maps.chunks_exact(k)) {
+                *a = values[key];
+            }
         }
     }
     for (key, a) in attention.chunks_exact_mut(cells).enumerate() {
@@ -543,13 +551,14 @@ impl HostEncoder {
 
     /// `h` of one RGB u8 frame (64x64, row-major, channels innermost), written into `h`.
     pub fn encode(&mut self, frame: &[u8], h: &mut [f64]) {
-        // Compiled again for the widest vector unit the CPU has, picked at run time.
-        pulp::Arch::new().dispatch(
-            #[inline(always)]
-            || self.encode_here(frame, h),
-        )
+        pulp::Arch::new().dispatch(Encode {
+            encoder: self,
+            frame,
+            h,
+        })
     }
 
+    /// The body of [`Self::encode`]; inlined into each of [`Encode`]'s compilations.
     #[inline(always)]
     fn encode_here(&mut self, frame: &[u8], h: &mut [f64]) {
         let buffers = &mut self.buffers;
@@ -658,6 +667,25 @@ impl HostEncoder {
                 .map(|j| self.transform[i * du + j] * buffers.raw[j])
                 .sum::<f32>() as f64;
         }
+    }
+}
+
+/// [`HostEncoder::encode`] compiled again for the widest vector unit the CPU has, picked at
+/// run time. A struct, not a closure: a closure that borrows mutably reaches the dispatch
+/// through `FnOnce::call_once`'s shim, which is compiled once for baseline x86-64 and keeps
+/// the whole encoder on 128-bit registers.
+struct Encode<'a> {
+    encoder: &'a mut HostEncoder,
+    frame: &'a [u8],
+    h: &'a mut [f64],
+}
+
+impl pulp::WithSimd for Encode<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        self.encoder.encode_here(self.frame, self.h)
     }
 }
 

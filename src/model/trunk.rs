@@ -159,24 +159,22 @@ impl TapeLayer {
 
     /// The layer's output for `frames` inputs `[frames, side^2, in]`.
     #[inline(always)]
-    fn forward(&self, input: &[f32], frames: usize) -> Vec<f32> {
+    fn forward(&self, input: &[f32], frames: usize, scratch: &mut Scratch) -> Vec<f32> {
         let [cin, cout] = self.conv.channels;
         let rows = frames * self.out_side().pow(2);
         let mut out = vec![0.0; rows * cout];
         if self.conv.is_pointwise() {
             gemm_into(&mut out, input, &self.conv.weight, rows, cin, cout);
         } else {
-            SCRATCH.with_borrow_mut(|scratch| {
-                let columns = self.columns(&mut scratch.columns, input, frames);
-                gemm_into(
-                    &mut out,
-                    columns,
-                    &self.conv.weight,
-                    rows,
-                    self.conv.width(),
-                    cout,
-                );
-            });
+            let columns = self.columns(&mut scratch.columns, input, frames);
+            gemm_into(
+                &mut out,
+                columns,
+                &self.conv.weight,
+                rows,
+                self.conv.width(),
+                cout,
+            );
         }
         add_bias(&mut out, &self.conv.bias, self.relu);
         out
@@ -229,6 +227,7 @@ impl TapeLayer {
         grad_out: &[f32],
         frames: usize,
         input_grad: bool,
+        scratch: &mut Scratch,
     ) -> (Vec<f32>, Vec<f32>, Option<Vec<f32>>) {
         let [cin, cout] = self.conv.channels;
         let width = self.conv.width();
@@ -242,7 +241,7 @@ impl TapeLayer {
             }
         }
         let bias: Vec<f32> = bias.into_iter().map(|b| b as f32).collect();
-        SCRATCH.with_borrow_mut(|scratch| {
+        {
             let Scratch {
                 columns,
                 grad_columns,
@@ -293,7 +292,7 @@ impl TapeLayer {
                     });
             }
             (weight, bias, Some(grad_input))
-        })
+        }
     }
 }
 
@@ -314,6 +313,60 @@ thread_local! {
 /// Per chunk: per layer (weight, bias) gradients, and the gradient of `log beta`.
 type Partial = (Vec<(Vec<f32>, Vec<f32>)>, Vec<f64>);
 
+/// [`forward_chunk`] compiled again for the widest vector unit the CPU has, picked at run
+/// time. A struct, not a closure: a closure reaches the dispatch through `FnOnce::call_once`'s
+/// shim, which is compiled once for baseline x86-64 (see `host_encoder::Encode`). For the
+/// same reason the thread's scratch comes in as an argument: code inside `LocalKey::with`'s
+/// closure is compiled outside the dispatch too.
+struct ForwardChunk<'a> {
+    layers: &'a [TapeLayer],
+    soft_argmax: Option<&'a SoftArgmaxTape>,
+    pixel_values: &'a [f32; 256],
+    chunk: &'a [&'a [u8]],
+    scratch: &'a mut Scratch,
+}
+
+impl pulp::WithSimd for ForwardChunk<'_> {
+    type Output = ChunkTape;
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) -> ChunkTape {
+        forward_chunk(
+            self.layers,
+            self.soft_argmax,
+            self.pixel_values,
+            self.chunk,
+            self.scratch,
+        )
+    }
+}
+
+/// [`backward_chunk`] compiled for the widest vector unit, as [`ForwardChunk`].
+struct BackwardChunk<'a> {
+    layers: &'a [TapeLayer],
+    soft_argmax: Option<&'a SoftArgmaxTape>,
+    chunk: &'a ChunkTape,
+    grad_output: &'a [f32],
+    first: usize,
+    scratch: &'a mut Scratch,
+}
+
+impl pulp::WithSimd for BackwardChunk<'_> {
+    type Output = Partial;
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) -> Partial {
+        backward_chunk(
+            self.layers,
+            self.soft_argmax,
+            self.chunk,
+            self.grad_output,
+            self.first,
+            self.scratch,
+        )
+    }
+}
+
 /// One chunk's forward pass: the pixels as network input, each layer, the soft-argmax.
 #[inline(always)]
 fn forward_chunk(
@@ -321,6 +374,7 @@ fn forward_chunk(
     soft_argmax: Option<&SoftArgmaxTape>,
     pixel_values: &[f32; 256],
     chunk: &[&[u8]],
+    scratch: &mut Scratch,
 ) -> ChunkTape {
     let mut input = vec![0.0; chunk.len() * FRAME_BYTES];
     for (x, frame) in input.chunks_exact_mut(FRAME_BYTES).zip(chunk) {
@@ -331,7 +385,7 @@ fn forward_chunk(
     let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(layers.len());
     for layer in layers {
         let x = outputs.last().unwrap_or(&input);
-        let y = layer.forward(x, chunk.len());
+        let y = layer.forward(x, chunk.len(), scratch);
         outputs.push(y);
     }
     let (attention, expectations) = match (soft_argmax, outputs.last()) {
@@ -357,6 +411,7 @@ fn backward_chunk(
     chunk: &ChunkTape,
     grad_output: &[f32],
     first: usize,
+    scratch: &mut Scratch,
 ) -> Partial {
     let Some(last) = layers.last() else {
         return (Vec::new(), Vec::new());
@@ -398,7 +453,7 @@ fn backward_chunk(
         } else {
             &chunk.outputs[l - 1]
         };
-        let (weight, bias, grad_input) = layer.backward(input, &grad, chunk.frames, l > 0);
+        let (weight, bias, grad_input) = layer.backward(input, &grad, chunk.frames, l > 0, scratch);
         per_layer.push((weight, bias));
         if let Some(g) = grad_input {
             grad = g;
@@ -437,11 +492,15 @@ impl TrunkTape {
         let chunks: Vec<ChunkTape> = frames
             .par_chunks(CHUNK_FRAMES)
             .map(|chunk| {
-                // Compiled again for the widest vector unit the CPU has, picked at run time.
-                pulp::Arch::new().dispatch(
-                    #[inline(always)]
-                    || forward_chunk(&layers, soft_argmax.as_ref(), &pixel_values, chunk),
-                )
+                SCRATCH.with_borrow_mut(|scratch| {
+                    pulp::Arch::new().dispatch(ForwardChunk {
+                        layers: &layers,
+                        soft_argmax: soft_argmax.as_ref(),
+                        pixel_values: &pixel_values,
+                        chunk,
+                        scratch,
+                    })
+                })
             })
             .collect();
         let n = frames.len();
@@ -509,11 +568,16 @@ impl TrunkTape {
             .enumerate()
             .map(|(index, chunk)| {
                 let from = index * CHUNK_FRAMES;
-                // Compiled again for the widest vector unit the CPU has, picked at run time.
-                pulp::Arch::new().dispatch(
-                    #[inline(always)]
-                    || backward_chunk(layers, soft_argmax.as_ref(), chunk, &grad_output, from),
-                )
+                SCRATCH.with_borrow_mut(|scratch| {
+                    pulp::Arch::new().dispatch(BackwardChunk {
+                        layers,
+                        soft_argmax: soft_argmax.as_ref(),
+                        chunk,
+                        grad_output: &grad_output,
+                        first: from,
+                        scratch,
+                    })
+                })
             })
             .collect();
         for (l, layer) in self.layers.iter().enumerate() {
