@@ -210,10 +210,12 @@ impl HostConv {
 }
 
 /// The spatial soft-argmax of one frame's keypoint maps `[cells, K]` (a convolution's
-/// output): each map's attention `softmax(beta_k m)` into `attention [K, cells]` and its
-/// expectation of each grid (`[cells]` each) into `expectations [K, G]`. Sums are taken in
-/// f64: over 1024 cells the f32 rounding of an expectation reaches the pairwise angles'
-/// gradients in training.
+/// output): each map's attention `softmax(beta_k m)` into `attention [cells, K]` (the maps'
+/// layout) and its expectation of each grid (`[cells]` each) into `expectations [K, G]`.
+/// Keys go side by side in blocks of [`KEY_BLOCK`], so each pass reads whole rows of the
+/// maps and vectorises over the keys. Sums are taken in f64, each key's over [`SUM_LANES`]
+/// running sums (lane `c mod SUM_LANES`) added in lane order: over 1024 cells the f32
+/// rounding of an expectation reaches the pairwise angles' gradients in training.
 #[inline(always)]
 pub(crate) fn soft_argmax(
     maps: &[f32],
@@ -223,72 +225,89 @@ pub(crate) fn soft_argmax(
     expectations: &mut [f32],
 ) {
     let k = sharpness.len();
-    let cells = attention.len() / k.max(1);
-    let g = grids.len();
-    // Keypoint by keypoint, so each softmax reads a row. The transpose goes in tiles of
-    // TILE cells: one key's writes fill whole cache lines, where writing a cell's K values
-    // at once strides 4 KiB between them and the stores evict each other from L1.
-    const TILE: usize = 16;
-    for (tile, tile_maps) in maps.chunks(TILE * k).enumerate() {
-        let first = tile * TILE;
-        for key in 0..k {
-            let row = &mut attention[key * cells + first..][..tile_maps.len() / k];
-            for (a, values) in row.iter_mut().zip(tile_maps.chunks_exact(k)) {
-                *a = values[key];
+    let mut first = 0;
+    while first + KEY_BLOCK <= k {
+        soft_argmax_keys::<KEY_BLOCK>(maps, sharpness, grids, first, attention, expectations);
+        first += KEY_BLOCK;
+    }
+    for key in first..k {
+        soft_argmax_keys::<1>(maps, sharpness, grids, key, attention, expectations);
+    }
+}
+
+/// Keys side by side in [`soft_argmax`]: 16 f32 are one AVX-512 register, and the running
+/// sums of one lane (`16 x (1 + G)` f64) stay in registers.
+const KEY_BLOCK: usize = 16;
+
+/// [`soft_argmax`] of the `B` keys from `first`. Each lane's cells are summed in cell order,
+/// one lane after the other, so a lane's sums live in registers.
+#[inline(always)]
+fn soft_argmax_keys<const B: usize>(
+    maps: &[f32],
+    sharpness: &[f32],
+    grids: &[Vec<f32>],
+    first: usize,
+    attention: &mut [f32],
+    expectations: &mut [f32],
+) {
+    let (k, g) = (sharpness.len(), grids.len());
+    let cells = maps.len() / k;
+    let at = |cell: usize| cell * k + first;
+    let beta = &sharpness[first..][..B];
+    let mut max = [f32::NEG_INFINITY; B];
+    for cell in 0..cells {
+        let m = &maps[at(cell)..][..B];
+        for i in 0..B {
+            max[i] = max[i].max(beta[i] * m[i]);
+        }
+    }
+    // As `Iterator::sum` adds the lanes.
+    let mut total = [-0.0f64; B];
+    for lane in 0..SUM_LANES {
+        let mut sum = [0.0f64; B];
+        for cell in (lane..cells).step_by(SUM_LANES) {
+            let m = &maps[at(cell)..][..B];
+            let a = &mut attention[at(cell)..][..B];
+            for i in 0..B {
+                a[i] = exp_non_positive(beta[i] * m[i] - max[i]);
+                sum[i] += f64::from(a[i]);
             }
         }
+        for i in 0..B {
+            total[i] += sum[i];
+        }
     }
-    for (key, a) in attention.chunks_exact_mut(cells).enumerate() {
-        let beta = sharpness[key];
-        let max = a.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(beta * v));
-        a.iter_mut()
-            .for_each(|v| *v = exp_non_positive(beta * *v - max));
-        let scale = (1.0 / lane_sum(a)) as f32;
-        a.iter_mut().for_each(|v| *v *= scale);
-        for (e, grid) in expectations[key * g..][..g].iter_mut().zip(grids) {
-            *e = lane_dot(a, grid) as f32;
+    let scale: [f32; B] = std::array::from_fn(|i| (1.0 / total[i]) as f32);
+    for cell in 0..cells {
+        let a = &mut attention[at(cell)..][..B];
+        for i in 0..B {
+            a[i] *= scale[i];
+        }
+    }
+    for (index, grid) in grids.iter().enumerate() {
+        let mut total = [-0.0f64; B];
+        for lane in 0..SUM_LANES {
+            let mut dot = [0.0f64; B];
+            for cell in (lane..cells).step_by(SUM_LANES) {
+                let (a, x) = (&attention[at(cell)..][..B], grid[cell]);
+                for i in 0..B {
+                    dot[i] += f64::from(a[i] * x);
+                }
+            }
+            for i in 0..B {
+                total[i] += dot[i];
+            }
+        }
+        for (i, &e) in total.iter().enumerate() {
+            expectations[(first + i) * g + index] = e as f32;
         }
     }
 }
 
-/// Lanes of the f64 sums in [`lane_dot`]: one AVX-512 register of f64.
+/// Lanes of each f64 sum in [`soft_argmax`]: one AVX-512 register of f64. A single running
+/// sum is a chain of dependent additions the compiler may not reorder, which costs more than
+/// the exponentials.
 const SUM_LANES: usize = 8;
-
-/// `sum_i a_i b_i` in f64 over [`SUM_LANES`] running sums added in a fixed order: a single
-/// running sum is a chain of dependent additions the compiler may not reorder, which costs
-/// more than the exponentials.
-#[inline(always)]
-fn lane_dot(a: &[f32], b: &[f32]) -> f64 {
-    let mut lanes = [0.0f64; SUM_LANES];
-    let (a_blocks, b_blocks) = (a.chunks_exact(SUM_LANES), b.chunks_exact(SUM_LANES));
-    let tail = a_blocks.remainder().iter().zip(b_blocks.remainder());
-    for (a, b) in a_blocks.zip(b_blocks) {
-        for ((lane, &a), &b) in lanes.iter_mut().zip(a).zip(b) {
-            *lane += f64::from(a * b);
-        }
-    }
-    for (lane, (&a, &b)) in lanes.iter_mut().zip(tail) {
-        *lane += f64::from(a * b);
-    }
-    lanes.iter().sum()
-}
-
-/// `sum_i a_i` in f64, as [`lane_dot`] sums.
-#[inline(always)]
-fn lane_sum(a: &[f32]) -> f64 {
-    let mut lanes = [0.0f64; SUM_LANES];
-    let blocks = a.chunks_exact(SUM_LANES);
-    let tail = blocks.remainder();
-    for block in blocks {
-        for (lane, &a) in lanes.iter_mut().zip(block) {
-            *lane += f64::from(a);
-        }
-    }
-    for (lane, &a) in lanes.iter_mut().zip(tail) {
-        *lane += f64::from(a);
-    }
-    lanes.iter().sum()
-}
 
 /// `exp(x)` for `x <= 0` (the softmax's `beta m - max`), within 2 ulp of libm's, in a form
 /// the compiler vectorises (a call to libm's `expf` keeps the softmax loop scalar):
@@ -498,8 +517,6 @@ pub struct HostEncoder {
     /// How many leading components of `Q raw` are `h`: all of them, or the mean's half of a
     /// NewtonianVAE's `(mean, log std)`.
     outputs: usize,
-    /// Each byte's network input ([`super::pixel_input`], looked up once per byte value).
-    pixel_values: [f32; 256],
     buffers: Buffers,
 }
 
@@ -508,6 +525,7 @@ struct Buffers {
     input: Vec<f32>,
     /// im2col of each convolution, kept between calls (see [`HostConv::forward`]).
     columns: [Vec<f32>; 4],
+    /// `[cells, K]`: each keypoint's attention.
     attention: Vec<f32>,
     /// `[K, G]`: each keypoint's expectations of the grids.
     expectations: Vec<f32>,
@@ -531,7 +549,6 @@ impl HostEncoder {
             head,
             outputs: (transform.len() as f64).sqrt() as usize,
             transform,
-            pixel_values: super::pixel_table(),
             buffers: Buffers::default(),
         }
     }
@@ -563,9 +580,7 @@ impl HostEncoder {
     fn encode_here(&mut self, frame: &[u8], h: &mut [f64]) {
         let buffers = &mut self.buffers;
         buffers.input.resize(frame.len(), 0.0);
-        for (x, &b) in buffers.input.iter_mut().zip(frame) {
-            *x = self.pixel_values[b as usize];
-        }
+        super::pixel_inputs(frame, &mut buffers.input);
         let side0 = FRAME_PX;
         self.conv1.forward(
             &buffers.input,
@@ -712,17 +727,76 @@ mod tests {
         assert_eq!(super::exp_non_positive(f32::NEG_INFINITY), 0.0);
     }
 
+    use super::SUM_LANES;
+
+    /// `sum_i a_i b_i` in f64 over [`SUM_LANES`] running sums (lane `i mod SUM_LANES`) added
+    /// in lane order: one key's row of [`super::soft_argmax`]'s sums.
+    fn lane_dot(a: &[f32], b: &[f32]) -> f64 {
+        let mut lanes = [0.0f64; SUM_LANES];
+        for (i, (&a, &b)) in a.iter().zip(b).enumerate() {
+            lanes[i % SUM_LANES] += f64::from(a * b);
+        }
+        lanes.iter().sum()
+    }
+
     #[test]
     fn lane_sums_equal_the_plain_sums() {
         // 21 values: two blocks of 8 and a tail of 5; quarters sum exactly.
         let values: Vec<f32> = (0..21).map(|i| i as f32 * 0.25).collect();
         let index: Vec<f32> = (0..21).map(|i| i as f32).collect();
-        assert_eq!(super::lane_sum(&values), 52.5);
-        let weighted = super::lane_dot(&values, &index);
+        assert_eq!(lane_dot(&values, &[1.0; 21]), 52.5);
+        let weighted = lane_dot(&values, &index);
         assert_eq!(
             weighted,
             (0..21).map(|i| (i * i) as f64 * 0.25).sum::<f64>()
         );
+    }
+
+    /// The soft-argmax over `[cells, K]` maps gives, bit for bit, each key's softmax and
+    /// expectations computed row by row (so training from a seed keeps its weights whichever
+    /// way the passes run), on 1027 cells (a tail past the lanes) and 21 keys of different
+    /// sharpness (a block of 16 and 5 one by one).
+    #[test]
+    fn soft_argmax_equals_the_row_by_row_softmax() {
+        let (cells, k) = (1027, 21);
+        let maps: Vec<f32> = (0..cells * k)
+            .map(|i| ((i * 7919) % 1000) as f32 / 250.0 - 2.0)
+            .collect();
+        let sharpness: Vec<f32> = (0..k).map(|key| 0.5 + key as f32 * 1.5).collect();
+        let grids: Vec<Vec<f32>> = (0..3)
+            .map(|g| {
+                (0..cells)
+                    .map(|c| ((c * (g + 3)) % 64) as f32 / 32.0 - 1.0)
+                    .collect()
+            })
+            .collect();
+        let mut attention = vec![0.0; cells * k];
+        let mut expectations = vec![0.0; k * grids.len()];
+        super::soft_argmax(&maps, &sharpness, &grids, &mut attention, &mut expectations);
+        for (key, &beta) in sharpness.iter().enumerate() {
+            let row: Vec<f32> = (0..cells).map(|c| maps[c * k + key]).collect();
+            let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(beta * v));
+            let e: Vec<f32> = row
+                .iter()
+                .map(|&v| super::exp_non_positive(beta * v - max))
+                .collect();
+            let scale = (1.0 / lane_dot(&e, &vec![1.0; cells])) as f32;
+            let a: Vec<f32> = e.iter().map(|&e| e * scale).collect();
+            for c in 0..cells {
+                assert_eq!(
+                    attention[c * k + key].to_bits(),
+                    a[c].to_bits(),
+                    "key {key} cell {c}"
+                );
+            }
+            for (g, grid) in grids.iter().enumerate() {
+                let want = lane_dot(&a, grid) as f32;
+                assert_eq!(
+                    expectations[key * grids.len() + g].to_bits(),
+                    want.to_bits()
+                );
+            }
+        }
     }
 
     /// The host encoder gives the tensor encoder's `h` for every shipped head: the point mass's

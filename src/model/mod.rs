@@ -51,13 +51,18 @@ pub fn device_by_name(name: &str) -> crate::Result<Device> {
 pub(crate) const POLAR_FADE_RADIUS: f32 = 0.05;
 
 /// A pixel byte as the network sees it: [0, 255] -> [-0.5, 0.5].
+#[inline(always)]
 pub(crate) fn pixel_input(byte: u8) -> f32 {
     byte as f32 / 255.0 - 0.5
 }
 
-/// [`pixel_input`] of every byte value, looked up rather than computed per pixel.
-pub(crate) fn pixel_table() -> [f32; 256] {
-    std::array::from_fn(|b| pixel_input(b as u8))
+/// [`pixel_input`] of each byte of `frame` into `input`: computed, not looked up, so that it
+/// vectorises (a table lookup per byte is a scalar load each).
+#[inline(always)]
+pub(crate) fn pixel_inputs(frame: &[u8], input: &mut [f32]) {
+    for (x, &b) in input.iter_mut().zip(frame) {
+        *x = pixel_input(b);
+    }
 }
 
 /// Converts RGB u8 frames to the network input `[n, 3, 64, 64]`, scaled to [-0.5, 0.5].

@@ -85,7 +85,7 @@ struct ChunkTape {
     input: Vec<f32>,
     /// Each layer's output `[frames, side^2, channels]`, after its ReLU.
     outputs: Vec<Vec<f32>>,
-    /// With the soft-argmax: the attention `[frames, K, cells]` and the expectations
+    /// With the soft-argmax: the attention `[frames, cells, K]` and the expectations
     /// `[frames, K, G]`.
     attention: Vec<f32>,
     expectations: Vec<f32>,
@@ -124,28 +124,47 @@ impl SoftArgmaxTape {
         let cells = maps.len() / (chunk.frames * k).max(1);
         let mut grad_maps = vec![0.0; maps.len()];
         let mut grad_log_sharpness = vec![0.0f64; k];
-        let mut s = vec![0.0f32; cells];
+        // Cell by cell with the keys side by side, as the forward pass; each key's terms are
+        // formed and summed in the same order as a key-by-key loop would.
+        let (mut offset, mut s, mut grad_beta) = (vec![0.0f32; k], vec![0.0f32; k], vec![0.0; k]);
+        // `dE [G, K]`: the frame's expectation gradients, grid by grid.
+        let mut de_by_grid = vec![0.0f32; g * k];
         for frame in 0..chunk.frames {
-            let maps = &maps[frame * cells * k..][..cells * k];
-            let grad_maps = &mut grad_maps[frame * cells * k..][..cells * k];
-            for (key, &beta) in self.sharpness.iter().enumerate() {
-                let a = &chunk.attention[(frame * k + key) * cells..][..cells];
+            let per_frame = cells * k;
+            let maps = &maps[frame * per_frame..][..per_frame];
+            let attention = &chunk.attention[frame * per_frame..][..per_frame];
+            let grad_maps = &mut grad_maps[frame * per_frame..][..per_frame];
+            for key in 0..k {
                 let e = &chunk.expectations[(frame * k + key) * g..][..g];
                 let de = &grad[(frame * k + key) * g..][..g];
-                let offset: f32 = de.iter().zip(e).map(|(d, e)| d * e).sum();
-                s.iter_mut().for_each(|v| *v = -offset);
-                for (grid, &d) in self.grids.iter().zip(de) {
-                    for (v, &x) in s.iter_mut().zip(grid) {
-                        *v += d * x;
-                    }
+                offset[key] = de.iter().zip(e).map(|(d, e)| d * e).sum();
+                for (grid, &d) in de.iter().enumerate() {
+                    de_by_grid[grid * k + key] = d;
                 }
-                let mut grad_beta = 0.0f64;
-                for (c, (&a, &s)) in a.iter().zip(&s).enumerate() {
+            }
+            grad_beta.fill(0.0f64);
+            let rows = attention.chunks_exact(k).zip(maps.chunks_exact(k));
+            for (cell, ((a, m), dm)) in rows.zip(grad_maps.chunks_exact_mut(k)).enumerate() {
+                s.iter_mut().zip(&offset).for_each(|(s, &o)| *s = -o);
+                for (grid, de) in self.grids.iter().zip(de_by_grid.chunks_exact(k)) {
+                    let x = grid[cell];
+                    s.iter_mut().zip(de).for_each(|(s, &d)| *s += d * x);
+                }
+                let keys = a.iter().zip(m).zip(&s).zip(&self.sharpness);
+                for ((((&a, &m), &s), &beta), (dm, gb)) in
+                    keys.zip(dm.iter_mut().zip(&mut grad_beta))
+                {
                     let t = a * s;
-                    grad_maps[c * k + key] = beta * t;
-                    grad_beta += f64::from(maps[c * k + key] * t);
+                    *dm = beta * t;
+                    *gb += f64::from(m * t);
                 }
-                grad_log_sharpness[key] += f64::from(beta) * grad_beta;
+            }
+            for ((sum, &beta), &gb) in grad_log_sharpness
+                .iter_mut()
+                .zip(&self.sharpness)
+                .zip(&grad_beta)
+            {
+                *sum += f64::from(beta) * gb;
             }
         }
         (grad_maps, grad_log_sharpness)
@@ -321,7 +340,6 @@ type Partial = (Vec<(Vec<f32>, Vec<f32>)>, Vec<f64>);
 struct ForwardChunk<'a> {
     layers: &'a [TapeLayer],
     soft_argmax: Option<&'a SoftArgmaxTape>,
-    pixel_values: &'a [f32; 256],
     chunk: &'a [&'a [u8]],
     scratch: &'a mut Scratch,
 }
@@ -331,13 +349,7 @@ impl pulp::WithSimd for ForwardChunk<'_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) -> ChunkTape {
-        forward_chunk(
-            self.layers,
-            self.soft_argmax,
-            self.pixel_values,
-            self.chunk,
-            self.scratch,
-        )
+        forward_chunk(self.layers, self.soft_argmax, self.chunk, self.scratch)
     }
 }
 
@@ -372,15 +384,12 @@ impl pulp::WithSimd for BackwardChunk<'_> {
 fn forward_chunk(
     layers: &[TapeLayer],
     soft_argmax: Option<&SoftArgmaxTape>,
-    pixel_values: &[f32; 256],
     chunk: &[&[u8]],
     scratch: &mut Scratch,
 ) -> ChunkTape {
     let mut input = vec![0.0; chunk.len() * FRAME_BYTES];
     for (x, frame) in input.chunks_exact_mut(FRAME_BYTES).zip(chunk) {
-        for (x, &b) in x.iter_mut().zip(frame.iter()) {
-            *x = pixel_values[b as usize];
-        }
+        super::pixel_inputs(frame, x);
     }
     let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(layers.len());
     for layer in layers {
@@ -488,7 +497,6 @@ impl TrunkTape {
             log_sharpness: stage.log_sharpness,
             grids: stage.grids,
         });
-        let pixel_values = super::pixel_table();
         let chunks: Vec<ChunkTape> = frames
             .par_chunks(CHUNK_FRAMES)
             .map(|chunk| {
@@ -496,7 +504,6 @@ impl TrunkTape {
                     pulp::Arch::new().dispatch(ForwardChunk {
                         layers: &layers,
                         soft_argmax: soft_argmax.as_ref(),
-                        pixel_values: &pixel_values,
                         chunk,
                         scratch,
                     })
