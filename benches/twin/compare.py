@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """procl against its PyTorch twin on the same machine, in one run: the training step of the
-point-mass and reacher presets (2 threads) and the point-mass control step (1 thread).
+point-mass and reacher presets (2 threads) and their control steps (1 thread).
 
 Runs each pair in turn, `--rounds` times, alternating procl and PyTorch so both see the same
 machine state, and prints each figure (median over rounds of each run's median) and the ratio
@@ -27,8 +27,10 @@ PAIRS = [
      ["--preset", "point-mass", "--what", "train", "--threads", "2"]),
     ("train step, reacher, batch 128, 2 threads", "train", "train_step/reacher_procl",
      ["--preset", "reacher", "--what", "train", "--threads", "2"]),
-    ("control step, point mass, 1 thread", "control", "control_step_1thread/procl_pd",
+    ("control step, point mass, 1 thread", "control", "control_step_1thread/procl_pointmass_pd",
      ["--preset", "point-mass", "--what", "control", "--threads", "1"]),
+    ("control step, reacher, 1 thread", "control", "control_step_1thread/procl_reacher_pd",
+     ["--preset", "reacher", "--what", "control", "--threads", "1"]),
 ]
 
 UNITS = {"ns": 1e-6, "µs": 1e-3, "us": 1e-3, "ms": 1.0, "s": 1e3}
