@@ -115,7 +115,7 @@ impl Harness {
             Target::GridToml => {
                 let grid =
                     crate::runner::ablate::Grid::from_toml(&self.write("grid.toml", bytes)?)?;
-                grid.cell_configs(EnvKind::PointMass).map(drop)
+                grid.cell_configs(EnvKind::PointMass.into()).map(drop)
             }
             Target::Checkpoint => {
                 self.write("model.safetensors", bytes)?;

@@ -209,9 +209,19 @@ enum Command {
     },
     /// Train and evaluate every cell of an ablation grid over several seeds (resumable).
     Ablate {
-        /// Environment (a 10k-transition dataset with seed 0 is collected into --out).
+        /// Environment (a 10k-transition dataset with seed 0 is collected into --out), or the
+        /// one --env-config configures.
+        #[arg(long, required_unless_present = "env_config")]
+        env: Option<String>,
+        /// A TOML file configuring a variant of the environment to collect from and evaluate
+        /// in, as for `procl collect`.
         #[arg(long)]
-        env: String,
+        env_config: Option<PathBuf>,
+        /// Record the data as custom, as `procl collect --as-custom`: every cell starts from
+        /// the recipe `procl train` picks for data from elsewhere, not the environment's
+        /// preset.
+        #[arg(long)]
+        as_custom: bool,
         /// The grid TOML ([base] over the preset, [[cell]] with a name and overrides).
         #[arg(long)]
         grid: PathBuf,
@@ -745,6 +755,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Ablate {
             env,
+            env_config,
+            as_custom,
             grid,
             cell,
             report_only,
@@ -758,7 +770,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             episode_len,
             out,
         } => {
-            let env: EnvKind = env.parse()?;
+            let env_config = resolve_env_config(env.as_deref(), env_config.as_deref())?;
+            let env = env_config.kind();
             let mut grid = procl::runner::ablate::Grid::from_toml(&grid)?;
             if let Some(name) = cell {
                 grid.cells.retain(|(n, _)| n == &name);
@@ -770,7 +783,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 anyhow::bail!("--seeds and --episodes must be at least 1");
             }
             if list_tasks {
-                grid.cell_configs(env)?;
+                // Custom data's recipe comes from its frames; the environment's preset has the
+                // same fields to check the cells against.
+                grid.cell_configs(env.into())?;
                 let tasks = grid.tasks(seed_start..seed_start + seeds);
                 for (index, (name, seed)) in tasks.iter().enumerate() {
                     println!("{index}\t{name}\tseed {seed}");
@@ -790,6 +805,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let defaults = CollectConfig::new(env, 0);
             let transitions = transitions.unwrap_or(defaults.transitions);
             let collect_config = CollectConfig {
+                env: env_config,
+                as_custom,
                 transitions,
                 episode_len: episode_len.unwrap_or(defaults.episode_len).min(transitions),
                 ..defaults

@@ -26,7 +26,7 @@ use crate::error::{Error, Result};
 use crate::eval::{ReachConfig, evaluate_run, write_env_diagnostics};
 use crate::losses::StepValues;
 use crate::model::cpu_device;
-use crate::train::{RunPaths, TrainConfig, config_from_table, train};
+use crate::train::{ConfigBase, RunPaths, TrainConfig, config_from_table, train};
 
 /// A parsed grid.
 #[derive(Debug, Clone)]
@@ -95,15 +95,16 @@ impl Grid {
             .collect()
     }
 
-    /// The resolved training configuration of every cell for `env` (the cell's keys deep-merged
-    /// over `[base]`, over the preset), or the first cell that does not resolve, by name.
-    pub fn cell_configs(&self, env: crate::envs::EnvKind) -> Result<Vec<(String, TrainConfig)>> {
+    /// The resolved training configuration of every cell from `base` (the cell's keys
+    /// deep-merged over `[base]`, over the preset), or the first cell that does not resolve,
+    /// by name.
+    pub fn cell_configs(&self, base: ConfigBase) -> Result<Vec<(String, TrainConfig)>> {
         self.cells
             .iter()
             .map(|(name, cell)| {
                 let mut table = self.base.clone();
                 crate::train::merge(&mut table, cell.clone());
-                config_from_table(table, env, None)
+                config_from_table(table, base, None)
                     .map(|config| (name.clone(), config))
                     .map_err(|e| Error::config(format!("cell `{name}`"), e.to_string()))
             })
@@ -164,14 +165,11 @@ pub fn run_grid(
     let _writer = (work == GridWork::TrainMissing)
         .then(|| crate::fsutil::FolderLock::acquire(out))
         .transpose()?;
-    let env = data.meta.env.ok_or_else(|| {
-        Error::config(
-            "data",
-            "the ablation grids hold recipes of procl's environments; the dataset is custom",
-        )
-    })?;
+    // Custom data (an environment recorded with --as-custom) starts from the recipe its frames
+    // call for, as `procl train` does.
+    let base = ConfigBase::for_dataset(data, None)?;
     // Validate every cell before spending hours on the first one.
-    let configs = grid.cell_configs(env)?;
+    let configs = grid.cell_configs(base)?;
     let tasks = grid.tasks(seeds);
     if let GridWork::Task(index) = work
         && index >= tasks.len()

@@ -412,3 +412,55 @@ fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_e
     fails_with(&args, "reacher.base_m");
     assert!(!dir.path().join("y.npz").exists());
 }
+
+/// An ablation grid on a variant recorded as custom: its cells start from the recipe the frames
+/// call for (the arm's, with polar keypoints), and each run is evaluated in the variant.
+#[test]
+fn an_ablation_grid_on_a_variant_recorded_as_custom_starts_from_the_recipe_of_its_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let variant = dir.path().join("variant.toml");
+    std::fs::write(&variant, "[reacher]\nbase_m = [0.035, -0.025]\n").unwrap();
+    let grid = dir.path().join("grid.toml");
+    std::fs::write(
+        &grid,
+        "[base]\nsteps = 2\nbatch_size = 8\n[[cell]]\nname = \"default\"\n",
+    )
+    .unwrap();
+    let out = dir.path().join("grid");
+    succeeds(&[
+        "ablate",
+        "--env-config",
+        path_str(&variant),
+        "--as-custom",
+        "--grid",
+        path_str(&grid),
+        "--seeds",
+        "1",
+        "--episodes",
+        "1",
+        "--horizon",
+        "5",
+        "--transitions",
+        "400",
+        "--episode-len",
+        "10",
+        "--out",
+        path_str(&out),
+    ]);
+    let data = Dataset::load(&out.join("reacher.npz")).unwrap();
+    assert_eq!(data.meta.env, None);
+    let run = out.join("default/seed-0");
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["env"], "custom");
+    assert_eq!(config["model"]["encoder"]["head"]["polar"], true);
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(
+        report["env_config"]["reacher"]["base_m"],
+        serde_json::json!([0.035, -0.025])
+    );
+    let results: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    assert_eq!(results.len(), 1);
+}
