@@ -399,11 +399,13 @@ impl Encoder {
     /// change least, so no reachable configuration sits on it (no-op for the other heads).
     /// Data-dependent initialisation, run once before training on the spread of every frame of
     /// the dataset (a 256-frame sample put the reacher's cut inside the shoulder's range for 2
-    /// of 6 seeds); centre and axis are stored with the weights.
-    pub fn place_polar_frame(self, spread: &PixelSpread) -> Self {
+    /// of 6 seeds); centre and axis are stored with the weights. `spread` is called only for a
+    /// polar head: a pass over every frame that the other heads do not need.
+    pub fn place_polar_frame(self, spread: impl FnOnce() -> PixelSpread) -> Self {
         if self.polar_axis().is_none() {
             return self;
         }
+        let spread = spread();
         let centre = spread.hub().map_or([0.0, 0.0], |hub| hub.centre);
         let cut = spread.quietest_direction(centre);
         self.set_polar_frame(centre, cut)
@@ -881,7 +883,7 @@ mod tests {
             )
             .unwrap();
             let spread = PixelSpread::of_frames(data.every_frame());
-            let encoder = encoder.place_polar_frame(&spread);
+            let encoder = encoder.place_polar_frame(|| spread);
             let camera = reacher_config.camera;
             let to_image = |[x_m, y_m]: [f64; 2]| {
                 let (col, row) = camera.project(x_m, y_m);

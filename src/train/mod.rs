@@ -90,8 +90,9 @@ impl Objective for ProclObjective<'_> {
     const METRICS: &'static [&'static str] = &LOSS_NAMES;
 
     fn prepare(&mut self, mut model: ProclModel) -> ProclModel {
-        let spread = PixelSpread::of_frames(self.data.every_frame());
-        model.encoder = model.encoder.place_polar_frame(&spread);
+        model.encoder = model
+            .encoder
+            .place_polar_frame(|| PixelSpread::of_frames(self.data.every_frame()));
         if let Some(target_std) = self.config.model.encoder.init_latent_std
             && target_std > 0.0
         {

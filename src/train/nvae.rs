@@ -253,7 +253,7 @@ impl Objective for NvaeObjective<'_> {
         // The same polar frame as ProCL's, so that both methods see the arm from its shoulder.
         model.encoder = model
             .encoder
-            .place_polar_frame(&PixelSpread::of_frames(self.data.every_frame()));
+            .place_polar_frame(|| PixelSpread::of_frames(self.data.every_frame()));
         model
     }
 

@@ -22,7 +22,7 @@ pub struct GaussianEncoder {
 
 impl GaussianEncoder {
     /// Places a polar head's centre and cut from the data, as [`Encoder::place_polar_frame`].
-    pub fn place_polar_frame(self, spread: &crate::data::PixelSpread) -> Self {
+    pub fn place_polar_frame(self, spread: impl FnOnce() -> crate::data::PixelSpread) -> Self {
         Self {
             net: self.net.place_polar_frame(spread),
         }
