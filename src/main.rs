@@ -783,9 +783,21 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 anyhow::bail!("--seeds and --episodes must be at least 1");
             }
             if list_tasks {
-                // Custom data's recipe comes from its frames; the environment's preset has the
-                // same fields to check the cells against.
-                grid.cell_configs(env.into())?;
+                // Custom data's recipe comes from its frames, which are not collected yet; any
+                // recipe checks the cells' fields, and a custom base checks their `env` key as
+                // the run will.
+                let base = if as_custom {
+                    let sim = env_config.make();
+                    procl::train::ConfigBase::Custom {
+                        action_dim: sim.action_dim(),
+                        control_dt_s: sim.control_dt_s(),
+                        recipe: procl::train::Recipe::Generic,
+                        hub: None,
+                    }
+                } else {
+                    env.into()
+                };
+                grid.cell_configs(base)?;
                 let tasks = grid.tasks(seed_start..seed_start + seeds);
                 for (index, (name, seed)) in tasks.iter().enumerate() {
                     println!("{index}\t{name}\tseed {seed}");

@@ -235,8 +235,8 @@ pub(crate) fn soft_argmax(
     }
 }
 
-/// Keys side by side in [`soft_argmax`]: 16 f32 are one AVX-512 register, and the running
-/// sums of one lane (`16 x (1 + G)` f64) stay in registers.
+/// Keys side by side in [`soft_argmax`]: 16 f32 are one AVX-512 register, and the 16 running
+/// f64 sums of one lane in one pass stay in registers.
 const KEY_BLOCK: usize = 16;
 
 /// [`soft_argmax`] of the `B` keys from `first`. Each lane's cells are summed in cell order,
@@ -706,6 +706,7 @@ impl pulp::WithSimd for Encode<'_> {
 
 #[cfg(test)]
 mod tests {
+    use super::SUM_LANES;
     use crate::model::{cpu_device, frames_to_tensor, to_vec};
     use crate::train::{Method, TrainConfig};
 
@@ -727,8 +728,6 @@ mod tests {
         assert_eq!(super::exp_non_positive(f32::NEG_INFINITY), 0.0);
     }
 
-    use super::SUM_LANES;
-
     /// `sum_i a_i b_i` in f64 over [`SUM_LANES`] running sums (lane `i mod SUM_LANES`) added
     /// in lane order: one key's row of [`super::soft_argmax`]'s sums.
     fn lane_dot(a: &[f32], b: &[f32]) -> f64 {
@@ -741,7 +740,7 @@ mod tests {
 
     #[test]
     fn lane_sums_equal_the_plain_sums() {
-        // 21 values: two blocks of 8 and a tail of 5; quarters sum exactly.
+        // 21 values: lanes 0-4 take three each, lanes 5-7 two; quarters sum exactly.
         let values: Vec<f32> = (0..21).map(|i| i as f32 * 0.25).collect();
         let index: Vec<f32> = (0..21).map(|i| i as f32).collect();
         assert_eq!(lane_dot(&values, &[1.0; 21]), 52.5);

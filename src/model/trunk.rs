@@ -260,58 +260,56 @@ impl TapeLayer {
             }
         }
         let bias: Vec<f32> = bias.into_iter().map(|b| b as f32).collect();
-        {
-            let Scratch {
-                columns,
-                grad_columns,
-            } = scratch;
-            let columns = if self.conv.is_pointwise() {
-                input
-            } else {
-                self.columns(columns, input, frames)
-            };
-            // dW [out, width] = grad_out^T [out, rows] . columns [rows, width]
-            let mut weight = vec![0.0; cout * width];
-            gemm_strided(
-                &mut weight,
-                [cout, width, rows],
-                (grad_out, [cout, 1]),
-                (columns, [1, width]),
-            );
-            if !input_grad {
-                return (weight, bias, None);
-            }
-            // d columns [rows, width] = grad_out [rows, out] . W [out, width], overwritten
-            // whole.
-            if grad_columns.len() < rows * width {
-                grad_columns.resize(rows * width, 0.0);
-            }
-            let grad_columns = &mut grad_columns[..rows * width];
-            gemm_strided(
-                grad_columns,
-                [rows, width, cout],
-                (grad_out, [1, cout]),
-                (&self.conv.weight, [1, width]),
-            );
-            if self.conv.is_pointwise() {
-                return (weight, bias, Some(grad_columns.to_vec()));
-            }
-            // col2im: each patch entry's gradient goes back to the input entry it was copied
-            // from.
-            let per_input = self.side.pow(2) * cin;
-            let per_frame = cells * width;
-            let mut grad_input = vec![0.0; frames * per_input];
-            for (frame, grad) in grad_input.chunks_exact_mut(per_input).enumerate() {
-                let block = &grad_columns[frame * per_frame..][..per_frame];
-                self.conv
-                    .for_each_patch_run(self.side, |column, from, len| {
-                        for (g, c) in grad[from..][..len].iter_mut().zip(&block[column..][..len]) {
-                            *g += c;
-                        }
-                    });
-            }
-            (weight, bias, Some(grad_input))
+        let Scratch {
+            columns,
+            grad_columns,
+        } = scratch;
+        let columns = if self.conv.is_pointwise() {
+            input
+        } else {
+            self.columns(columns, input, frames)
+        };
+        // dW [out, width] = grad_out^T [out, rows] . columns [rows, width]
+        let mut weight = vec![0.0; cout * width];
+        gemm_strided(
+            &mut weight,
+            [cout, width, rows],
+            (grad_out, [cout, 1]),
+            (columns, [1, width]),
+        );
+        if !input_grad {
+            return (weight, bias, None);
         }
+        // d columns [rows, width] = grad_out [rows, out] . W [out, width], overwritten
+        // whole.
+        if grad_columns.len() < rows * width {
+            grad_columns.resize(rows * width, 0.0);
+        }
+        let grad_columns = &mut grad_columns[..rows * width];
+        gemm_strided(
+            grad_columns,
+            [rows, width, cout],
+            (grad_out, [1, cout]),
+            (&self.conv.weight, [1, width]),
+        );
+        if self.conv.is_pointwise() {
+            return (weight, bias, Some(grad_columns.to_vec()));
+        }
+        // col2im: each patch entry's gradient goes back to the input entry it was copied
+        // from.
+        let per_input = self.side.pow(2) * cin;
+        let per_frame = cells * width;
+        let mut grad_input = vec![0.0; frames * per_input];
+        for (frame, grad) in grad_input.chunks_exact_mut(per_input).enumerate() {
+            let block = &grad_columns[frame * per_frame..][..per_frame];
+            self.conv
+                .for_each_patch_run(self.side, |column, from, len| {
+                    for (g, c) in grad[from..][..len].iter_mut().zip(&block[column..][..len]) {
+                        *g += c;
+                    }
+                });
+        }
+        (weight, bias, Some(grad_input))
     }
 }
 

@@ -44,6 +44,14 @@ pub fn collect_or_reuse(
             steps,
             RANDOM_CONTROL,
         );
+        if found.0 != wanted.0
+            && (found.1, found.2, found.3, found.4) == (wanted.1, wanted.2, wanted.3, wanted.4)
+        {
+            return Err(Error::dataset(
+                path,
+                "was recorded from another environment configuration than this stage's (another variant, or --as-custom differs); move it away or pick another --out",
+            ));
+        }
         if found != wanted {
             return Err(Error::dataset(
                 path,

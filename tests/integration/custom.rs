@@ -413,6 +413,10 @@ fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_e
     assert!(!dir.path().join("y.npz").exists());
 }
 
+fn strs(args: &[String]) -> Vec<&str> {
+    args.iter().map(String::as_str).collect()
+}
+
 /// An ablation grid on a variant recorded as custom: its cells start from the recipe the frames
 /// call for (the arm's, with polar keypoints), and each run is evaluated in the variant.
 #[test]
@@ -427,26 +431,47 @@ fn an_ablation_grid_on_a_variant_recorded_as_custom_starts_from_the_recipe_of_it
     )
     .unwrap();
     let out = dir.path().join("grid");
-    succeeds(&[
-        "ablate",
-        "--env-config",
-        path_str(&variant),
-        "--as-custom",
-        "--grid",
-        path_str(&grid),
-        "--seeds",
-        "1",
-        "--episodes",
-        "1",
-        "--horizon",
-        "5",
-        "--transitions",
-        "400",
-        "--episode-len",
-        "10",
-        "--out",
-        path_str(&out),
-    ]);
+    let ablate = |variant: &Path, grid: &Path, extra: &[&str]| -> Vec<String> {
+        let mut args: Vec<String> = [
+            "ablate",
+            "--env-config",
+            path_str(variant),
+            "--as-custom",
+            "--grid",
+            path_str(grid),
+            "--seeds",
+            "1",
+            "--episodes",
+            "1",
+            "--horizon",
+            "5",
+            "--transitions",
+            "400",
+            "--episode-len",
+            "10",
+            "--out",
+            path_str(&out),
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args
+    };
+    // Listing checks the cells as the run will: against a custom base, which refuses the
+    // environment's name.
+    let named = dir.path().join("named.toml");
+    std::fs::write(
+        &named,
+        "[base]\nenv = \"reacher\"\n[[cell]]\nname = \"default\"\n",
+    )
+    .unwrap();
+    fails_with(
+        &strs(&ablate(&variant, &named, &["--list-tasks"])),
+        "custom",
+    );
+    succeeds(&strs(&ablate(&variant, &grid, &["--list-tasks"])));
+    succeeds(&strs(&ablate(&variant, &grid, &[])));
     let data = Dataset::load(&out.join("reacher.npz")).unwrap();
     assert_eq!(data.meta.env, None);
     let run = out.join("default/seed-0");
@@ -463,4 +488,11 @@ fn an_ablation_grid_on_a_variant_recorded_as_custom_starts_from_the_recipe_of_it
     let results: Vec<serde_json::Value> =
         serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
     assert_eq!(results.len(), 1);
+    // The folder's dataset is this variant's: another one is refused, by name.
+    let other = dir.path().join("other.toml");
+    std::fs::write(&other, "[reacher]\nbase_m = [0.02, 0.0]\n").unwrap();
+    fails_with(
+        &strs(&ablate(&other, &grid, &[])),
+        "another environment configuration",
+    );
 }
