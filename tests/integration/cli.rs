@@ -54,6 +54,45 @@ pub(crate) fn path_str(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
+/// Owned arguments as the `&str`s [`succeeds`] and [`fails_with`] take.
+pub(crate) fn strs(args: &[String]) -> Vec<&str> {
+    args.iter().map(String::as_str).collect()
+}
+
+/// `procl ablate` on a tiny budget: the data from `source` (`--env E` or `--env-config V`),
+/// `transitions` in 10-step episodes, `seeds` seeds, one 5-step episode each, into `out`, then
+/// `extra`.
+pub(crate) fn tiny_ablate(
+    source: &[&str],
+    grid: &Path,
+    seeds: usize,
+    transitions: usize,
+    out: &Path,
+    extra: &[&str],
+) -> Vec<String> {
+    let (seeds, transitions) = (seeds.to_string(), transitions.to_string());
+    let mut args = vec!["ablate"];
+    args.extend_from_slice(source);
+    args.extend([
+        "--grid",
+        path_str(grid),
+        "--seeds",
+        &seeds,
+        "--episodes",
+        "1",
+        "--horizon",
+        "5",
+        "--transitions",
+        &transitions,
+        "--episode-len",
+        "10",
+        "--out",
+        path_str(out),
+    ]);
+    args.extend_from_slice(extra);
+    args.into_iter().map(String::from).collect()
+}
+
 #[test]
 fn collect_render_info_and_bad_input() {
     let dir = tempfile::tempdir().unwrap();
@@ -312,36 +351,8 @@ fn ablation_tasks_run_one_per_job_array_index_and_merge() {
     )
     .unwrap();
     let out = dir.path().join("grid");
-    let args = |extra: &[&str]| -> Vec<String> {
-        let mut args: Vec<String> = [
-            "ablate",
-            "--env",
-            "point-mass",
-            "--grid",
-            path_str(&grid),
-            "--seeds",
-            "2",
-            "--episodes",
-            "1",
-            "--horizon",
-            "5",
-            "--transitions",
-            "40",
-            "--episode-len",
-            "10",
-            "--out",
-            path_str(&out),
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.extend(extra.iter().map(|s| s.to_string()));
-        args
-    };
-    let run = |extra: &[&str]| {
-        let args = args(extra);
-        succeeds(&args.iter().map(String::as_str).collect::<Vec<_>>())
-    };
+    let args = |extra: &[&str]| tiny_ablate(&["--env", "point-mass"], &grid, 2, 40, &out, extra);
+    let run = |extra: &[&str]| succeeds(&strs(&args(extra)));
     let listed = String::from_utf8_lossy(&run(&["--list-tasks"]).stdout).into_owned();
     assert!(listed.contains("0\tdefault\tseed 0"), "{listed}");
     assert!(listed.contains("3\tq_v=0\tseed 1"), "{listed}");
@@ -354,11 +365,7 @@ fn ablation_tasks_run_one_per_job_array_index_and_merge() {
     assert!(out.join("default/seed-0/result.json").exists());
     assert!(!out.join("default/seed-1").exists());
     assert!(!out.join("ablation.md").exists());
-    let bad = args(&["--task-index", "4"]);
-    fails_with(
-        &bad.iter().map(String::as_str).collect::<Vec<_>>(),
-        "the grid has 4 tasks",
-    );
+    fails_with(&strs(&args(&["--task-index", "4"])), "the grid has 4 tasks");
 
     run(&["--report-only"]);
     let merged: Vec<serde_json::Value> =

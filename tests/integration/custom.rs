@@ -9,7 +9,7 @@ use ndarray_npy::NpzWriter;
 use procl::data::{CollectConfig, Dataset, IMPORTED_SOURCE, collect};
 use procl::envs::EnvKind;
 
-use crate::cli::{fails_with, path_str, succeeds};
+use crate::cli::{fails_with, path_str, strs, succeeds, tiny_ablate};
 
 /// Writes the three arrays a custom dataset needs, and nothing else.
 fn write_custom(path: &Path, obs: &Array5<u8>, actions: &Array3<f32>, control_dt_s: Option<f64>) {
@@ -413,10 +413,6 @@ fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_e
     assert!(!dir.path().join("y.npz").exists());
 }
 
-fn strs(args: &[String]) -> Vec<&str> {
-    args.iter().map(String::as_str).collect()
-}
-
 /// An ablation grid on a variant recorded as custom: its cells start from the recipe the frames
 /// call for (the arm's, with polar keypoints), and each run is evaluated in the variant.
 #[test]
@@ -431,32 +427,9 @@ fn an_ablation_grid_on_a_variant_recorded_as_custom_starts_from_the_recipe_of_it
     )
     .unwrap();
     let out = dir.path().join("grid");
-    let ablate = |variant: &Path, grid: &Path, extra: &[&str]| -> Vec<String> {
-        let mut args: Vec<String> = [
-            "ablate",
-            "--env-config",
-            path_str(variant),
-            "--as-custom",
-            "--grid",
-            path_str(grid),
-            "--seeds",
-            "1",
-            "--episodes",
-            "1",
-            "--horizon",
-            "5",
-            "--transitions",
-            "400",
-            "--episode-len",
-            "10",
-            "--out",
-            path_str(&out),
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.extend(extra.iter().map(|s| s.to_string()));
-        args
+    let ablate = |variant: &Path, grid: &Path, extra: &[&str]| {
+        let source = ["--env-config", path_str(variant), "--as-custom"];
+        tiny_ablate(&source, grid, 1, 400, &out, extra)
     };
     // Listing checks the cells as the run will: against a custom base, which refuses the
     // environment's name.
