@@ -261,22 +261,14 @@ fn soft_argmax_keys<const B: usize>(
             max[i] = max[i].max(beta[i] * m[i]);
         }
     }
-    // As `Iterator::sum` adds the lanes.
-    let mut total = [-0.0f64; B];
-    for lane in 0..SUM_LANES {
-        let mut sum = [0.0f64; B];
-        for cell in (lane..cells).step_by(SUM_LANES) {
-            let m = &maps[at(cell)..][..B];
-            let a = &mut attention[at(cell)..][..B];
-            for i in 0..B {
-                a[i] = exp_non_positive(beta[i] * m[i] - max[i]);
-                sum[i] += f64::from(a[i]);
-            }
-        }
+    let total = lane_sums::<B>(cells, |cell, sum| {
+        let m = &maps[at(cell)..][..B];
+        let a = &mut attention[at(cell)..][..B];
         for i in 0..B {
-            total[i] += sum[i];
+            a[i] = exp_non_positive(beta[i] * m[i] - max[i]);
+            sum[i] += f64::from(a[i]);
         }
-    }
+    });
     let scale: [f32; B] = std::array::from_fn(|i| (1.0 / total[i]) as f32);
     for cell in 0..cells {
         let a = &mut attention[at(cell)..][..B];
@@ -285,23 +277,35 @@ fn soft_argmax_keys<const B: usize>(
         }
     }
     for (index, grid) in grids.iter().enumerate() {
-        let mut total = [-0.0f64; B];
-        for lane in 0..SUM_LANES {
-            let mut dot = [0.0f64; B];
-            for cell in (lane..cells).step_by(SUM_LANES) {
-                let (a, x) = (&attention[at(cell)..][..B], grid[cell]);
-                for i in 0..B {
-                    dot[i] += f64::from(a[i] * x);
-                }
-            }
+        let total = lane_sums::<B>(cells, |cell, dot| {
+            let (a, x) = (&attention[at(cell)..][..B], grid[cell]);
             for i in 0..B {
-                total[i] += dot[i];
+                dot[i] += f64::from(a[i] * x);
             }
-        }
+        });
         for (i, &e) in total.iter().enumerate() {
             expectations[(first + i) * g + index] = e as f32;
         }
     }
+}
+
+/// `B` sums over `cells` in f64: `add(cell, lane)` adds cell `cell`'s terms to its lane's
+/// running sums (lane `cell mod SUM_LANES`), each lane's cells in order, one lane after the
+/// other so that a lane's sums live in registers; the lanes are then added in order from
+/// -0.0, as `Iterator::sum` adds them.
+#[inline(always)]
+fn lane_sums<const B: usize>(cells: usize, mut add: impl FnMut(usize, &mut [f64; B])) -> [f64; B] {
+    let mut total = [-0.0f64; B];
+    for lane in 0..SUM_LANES {
+        let mut sum = [0.0f64; B];
+        for cell in (lane..cells).step_by(SUM_LANES) {
+            add(cell, &mut sum);
+        }
+        for i in 0..B {
+            total[i] += sum[i];
+        }
+    }
+    total
 }
 
 /// Lanes of each f64 sum in [`soft_argmax`]: one AVX-512 register of f64. A single running
