@@ -8,6 +8,7 @@ use burn::nn::conv::Conv2d;
 use gemm::Parallelism;
 
 use super::POLAR_FADE_RADIUS;
+use super::winograd::Winograd3x3;
 use crate::envs::FRAME_PX;
 
 /// A convolution as im2col + GEMM with zero padding on the input. The weight is held
@@ -179,7 +180,7 @@ impl HostConv {
     /// `input` is `[side * side, in]` (pixels row-major, channels innermost); writes
     /// `[out_side^2, out]` into `out`, with a ReLU when `relu`.
     #[inline(always)]
-    fn forward(
+    pub(crate) fn forward(
         &self,
         input: &[f32],
         side: usize,
@@ -515,6 +516,9 @@ pub(crate) enum HostHead {
 pub struct HostEncoder {
     pub(crate) conv1: HostConv,
     pub(crate) conv2: HostConv,
+    /// `conv2` in Winograd's form, where it has one (a 3x3 stride-1 convolution: the
+    /// reacher's, which keeps 32x32 maps).
+    conv2_winograd: Option<Winograd3x3>,
     pub(crate) head: HostHead,
     /// The orientation `Q`, row-major `du x du`: `h = Q raw`.
     pub(crate) transform: Vec<f32>,
@@ -549,6 +553,7 @@ impl HostEncoder {
     ) -> Self {
         Self {
             conv1,
+            conv2_winograd: Winograd3x3::from_conv(&conv2),
             conv2,
             head,
             outputs: (transform.len() as f64).sqrt() as usize,
@@ -581,7 +586,7 @@ impl HostEncoder {
 
     /// The body of [`Self::encode`]; inlined into each of [`Encode`]'s compilations.
     #[inline(always)]
-    fn encode_here(&mut self, frame: &[u8], h: &mut [f64]) {
+    fn encode_here<S: pulp::Simd>(&mut self, simd: S, frame: &[u8], h: &mut [f64]) {
         let buffers = &mut self.buffers;
         buffers.input.resize(frame.len(), 0.0);
         super::pixel_inputs(frame, &mut buffers.input);
@@ -594,13 +599,18 @@ impl HostEncoder {
             true,
         );
         let side1 = self.conv1.out_side(side0);
-        self.conv2.forward(
-            &buffers.a,
-            side1,
-            &mut buffers.columns[1],
-            &mut buffers.b,
-            true,
-        );
+        match &mut self.conv2_winograd {
+            Some(winograd) if winograd.fits(side1) => {
+                winograd.forward(simd, &buffers.a, side1, &mut buffers.b, true)
+            }
+            _ => self.conv2.forward(
+                &buffers.a,
+                side1,
+                &mut buffers.columns[1],
+                &mut buffers.b,
+                true,
+            ),
+        }
         let side2 = self.conv2.out_side(side1);
         match &self.head {
             HostHead::Mlp { conv3, fc1, fc2 } => {
@@ -703,8 +713,8 @@ impl pulp::WithSimd for Encode<'_> {
     type Output = ();
 
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        self.encoder.encode_here(self.frame, self.h)
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        self.encoder.encode_here(simd, self.frame, self.h)
     }
 }
 

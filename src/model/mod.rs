@@ -8,6 +8,7 @@ mod encoder;
 mod host_encoder;
 mod init;
 mod trunk;
+mod winograd;
 
 pub use dynamics::{Dynamics, DynamicsConfig, Transition};
 pub(crate) use encoder::POLAR_CENTRE;
