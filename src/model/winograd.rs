@@ -16,8 +16,10 @@
 //! ```
 //!
 //! Summed over input channels, the 16 entry-wise products become 16 small matrix products
-//! (tiles x in by in x out), which run here a block of tiles at a time so that every
-//! intermediate stays in the L1 cache. Only the summation order differs from im2col + GEMM.
+//! (tiles x in by in x out), which run here a block of tiles at a time so that the block's
+//! tiles stay in the L1 cache. The result equals im2col + GEMM's in exact arithmetic; only
+//! the rounding differs (`G g G^T` rounded to f32, the transforms' sums, the order of the
+//! products' sums).
 
 use pulp::Simd;
 
@@ -29,8 +31,9 @@ const POINTS: usize = 16;
 /// Tiles transformed and multiplied together: eight rows of accumulators in registers.
 const TILE_BLOCK: usize = 8;
 
-/// Output channels accumulated together: one AVX-512 register of f32.
-const LANES: usize = 16;
+/// Channels must come in multiples of one AVX-512 register of f32, so that every narrower
+/// vector unit's registers (8, 4 or 1 lanes) divide them too.
+const CHANNEL_MULTIPLE: usize = 16;
 
 /// A convolution's weights transformed for F(2x2, 3x3), with the scratch of one call.
 #[derive(Debug, Clone)]
@@ -53,8 +56,8 @@ impl Winograd3x3 {
     pub fn from_conv(conv: &HostConv) -> Option<Self> {
         let [cin, cout] = conv.channels;
         if (conv.kernel, conv.stride, conv.padding) != (3, 1, 1)
-            || cin % LANES != 0
-            || cout % LANES != 0
+            || !cin.is_multiple_of(CHANNEL_MULTIPLE)
+            || !cout.is_multiple_of(CHANNEL_MULTIPLE)
         {
             return None;
         }
@@ -112,6 +115,10 @@ impl Winograd3x3 {
         out: &mut Vec<f32>,
         relu: bool,
     ) {
+        debug_assert!(
+            self.fits(side),
+            "a side of {side} pixels has no whole 2x2 tiles"
+        );
         let [cin, cout] = self.channels;
         let padded_side = side + 2;
         // The border stays 0 from the first call; the interior is rewritten.
@@ -289,45 +296,48 @@ fn output_transform<S: Simd>(
     }
 }
 
+/// [`Winograd3x3::forward`]'s arguments, to run it on a chosen vector unit in tests.
 #[cfg(test)]
-impl Winograd3x3 {
-    /// [`Self::forward`] for the widest vector unit the CPU has.
-    fn forward_dispatched(&mut self, input: &[f32], side: usize, out: &mut Vec<f32>, relu: bool) {
-        struct Forward<'a>(
-            &'a mut Winograd3x3,
-            &'a [f32],
-            usize,
-            &'a mut Vec<f32>,
-            bool,
-        );
-        impl pulp::WithSimd for Forward<'_> {
-            type Output = ();
-            #[inline(always)]
-            fn with_simd<S: Simd>(self, simd: S) {
-                self.0.forward(simd, self.1, self.2, self.3, self.4)
-            }
-        }
-        pulp::Arch::new().dispatch(Forward(self, input, side, out, relu))
+struct Forward<'a>(
+    &'a mut Winograd3x3,
+    &'a [f32],
+    usize,
+    &'a mut Vec<f32>,
+    bool,
+);
+
+#[cfg(test)]
+impl pulp::WithSimd for Forward<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, simd: S) {
+        self.0.forward(simd, self.1, self.2, self.3, self.4)
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use super::Winograd3x3;
+    use pulp::Simd;
+
+    use super::{Forward, Winograd3x3};
     use crate::model::host_encoder::HostConv;
 
-    /// The Winograd form gives im2col + GEMM's outputs to f32 rounding, with and without the
-    /// ReLU, on a 32x32 input whose 256 tiles end inside a block, and on a 6x6 input smaller
-    /// than one block.
-    #[test]
-    fn winograd_equals_im2col_convolution() {
-        for (side, cin, cout) in [(32, 16, 32), (6, 32, 16)] {
-            let weight: Vec<f32> = (0..cout * cin * 9)
-                .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
-                .collect();
-            let bias: Vec<f32> = (0..cout).map(|o| o as f32 * 0.01 - 0.1).collect();
-            let conv = HostConv::new(&weight, bias, [cin, cout], 3, 1, 1);
-            let mut winograd = Winograd3x3::from_conv(&conv).expect("a 3x3 stride-1 conv");
+    /// One convolution's Winograd form against its im2col + GEMM on inputs of the given
+    /// sides, one after the other on the same instance (its zero border resized between
+    /// them), with and without the ReLU, on the vector unit `run` dispatches to.
+    fn check_against_im2col(
+        [cin, cout]: [usize; 2],
+        sides: &[usize],
+        run: &mut dyn FnMut(Forward<'_>),
+    ) {
+        let weight: Vec<f32> = (0..cout * cin * 9)
+            .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
+            .collect();
+        let bias: Vec<f32> = (0..cout).map(|o| o as f32 * 0.01 - 0.1).collect();
+        let conv = HostConv::new(&weight, bias, [cin, cout], 3, 1, 1);
+        let mut winograd = Winograd3x3::from_conv(&conv).expect("a 3x3 stride-1 conv");
+        for &side in sides {
             assert!(winograd.fits(side));
             let input: Vec<f32> = (0..side * side * cin)
                 .map(|i| ((i * 104_729) % 997) as f32 / 997.0 - 0.5)
@@ -335,14 +345,32 @@ mod tests {
             for relu in [false, true] {
                 let (mut columns, mut want, mut got) = (Vec::new(), Vec::new(), Vec::new());
                 conv.forward(&input, side, &mut columns, &mut want, relu);
-                winograd.forward_dispatched(&input, side, &mut got, relu);
+                run(Forward(&mut winograd, &input, side, &mut got, relu));
                 assert_eq!(got.len(), want.len());
                 for (i, (g, w)) in got.iter().zip(&want).enumerate() {
                     assert!(
                         (g - w).abs() <= 1e-5 * w.abs().max(1.0),
-                        "{side} {i}: {g} vs {w}"
+                        "side {side}, relu {relu}, entry {i}: {g} vs {w}"
                     );
                 }
+            }
+        }
+    }
+
+    /// The Winograd form gives im2col + GEMM's outputs to f32 rounding: a 32x32 input (16
+    /// tiles a row, whole blocks), then a 6x6 one whose 9 tiles end one into a second block,
+    /// with 16 channels in and 32 out and the other way round, on the widest vector unit the
+    /// CPU has, on AVX2 where there is one, and on scalar code.
+    #[test]
+    fn winograd_equals_im2col_convolution() {
+        for channels in [[16, 32], [32, 16]] {
+            check_against_im2col(channels, &[32, 6], &mut |f| pulp::Arch::new().dispatch(f));
+            check_against_im2col(channels, &[32, 6], &mut |f| {
+                Simd::vectorize(pulp::Scalar, f)
+            });
+            #[cfg(target_arch = "x86_64")]
+            if let Some(avx2) = pulp::x86::V3::try_new() {
+                check_against_im2col(channels, &[32, 6], &mut |f| Simd::vectorize(avx2, f));
             }
         }
     }
