@@ -65,6 +65,16 @@ impl HostConv {
         }
     }
 
+    /// This convolution in Winograd's form, where it has one (see [`Winograd3x3::new`]).
+    pub fn winograd(&self) -> Option<Winograd3x3> {
+        Winograd3x3::new(
+            &self.weight,
+            &self.bias,
+            self.channels,
+            [self.kernel, self.stride, self.padding],
+        )
+    }
+
     /// A weight (or its gradient) in the host layout `[out, kh, kw, in]` back in burn's
     /// `[out, in, kh, kw]`.
     pub fn weight_to_burn_layout(&self, weight: &[f32]) -> Vec<f32> {
@@ -553,7 +563,7 @@ impl HostEncoder {
     ) -> Self {
         Self {
             conv1,
-            conv2_winograd: Winograd3x3::from_conv(&conv2),
+            conv2_winograd: conv2.winograd(),
             conv2,
             head,
             outputs: (transform.len() as f64).sqrt() as usize,

@@ -23,8 +23,6 @@
 
 use pulp::Simd;
 
-use super::host_encoder::HostConv;
-
 /// Points of the transformed tile: 4x4.
 const POINTS: usize = 16;
 
@@ -51,11 +49,16 @@ pub(crate) struct Winograd3x3 {
 }
 
 impl Winograd3x3 {
-    /// The Winograd form of `conv`, when it has one here: a 3x3 kernel, stride 1, padding 1,
-    /// and channels in whole registers.
-    pub fn from_conv(conv: &HostConv) -> Option<Self> {
-        let [cin, cout] = conv.channels;
-        if (conv.kernel, conv.stride, conv.padding) != (3, 1, 1)
+    /// The Winograd form of a convolution with `weight` in the host layout `[out, kh, kw,
+    /// in]` and `[kernel, stride, padding]` of `shape`, when it has one here: a 3x3 kernel,
+    /// stride 1, padding 1, and channels in whole registers.
+    pub fn new(
+        weight: &[f32],
+        bias: &[f32],
+        [cin, cout]: [usize; 2],
+        shape: [usize; 3],
+    ) -> Option<Self> {
+        if shape != [3, 1, 1]
             || !cin.is_multiple_of(CHANNEL_MULTIPLE)
             || !cout.is_multiple_of(CHANNEL_MULTIPLE)
         {
@@ -72,9 +75,7 @@ impl Winograd3x3 {
         for o in 0..cout {
             for c in 0..cin {
                 // Host layout `[out, kh, kw, in]`.
-                let g = |ky: usize, kx: usize| {
-                    f64::from(conv.weight[((o * 3 + ky) * 3 + kx) * cin + c])
-                };
+                let g = |ky: usize, kx: usize| f64::from(weight[((o * 3 + ky) * 3 + kx) * cin + c]);
                 for (i, gi) in G.iter().enumerate() {
                     for (j, gj) in G.iter().enumerate() {
                         let mut u = 0.0;
@@ -90,8 +91,8 @@ impl Winograd3x3 {
         }
         Some(Self {
             transformed,
-            bias: conv.bias.clone(),
-            channels: conv.channels,
+            bias: bias.to_vec(),
+            channels: [cin, cout],
             padded: Vec::new(),
             tiles_in: vec![0.0; TILE_BLOCK * POINTS * cin],
             tiles_out: vec![0.0; TILE_BLOCK * POINTS * cout],
@@ -320,7 +321,7 @@ impl pulp::WithSimd for Forward<'_> {
 mod tests {
     use pulp::Simd;
 
-    use super::{Forward, Winograd3x3};
+    use super::Forward;
     use crate::model::host_encoder::HostConv;
 
     /// One convolution's Winograd form against its im2col + GEMM on inputs of the given
@@ -336,7 +337,7 @@ mod tests {
             .collect();
         let bias: Vec<f32> = (0..cout).map(|o| o as f32 * 0.01 - 0.1).collect();
         let conv = HostConv::new(&weight, bias, [cin, cout], 3, 1, 1);
-        let mut winograd = Winograd3x3::from_conv(&conv).expect("a 3x3 stride-1 conv");
+        let mut winograd = conv.winograd().expect("a 3x3 stride-1 conv");
         for &side in sides {
             assert!(winograd.fits(side));
             let input: Vec<f32> = (0..side * side * cin)
@@ -387,12 +388,12 @@ mod tests {
                 pad,
             )
         };
-        assert!(Winograd3x3::from_conv(&conv(3, 1, 1, 32)).is_some());
-        assert!(Winograd3x3::from_conv(&conv(3, 2, 1, 32)).is_none());
-        assert!(Winograd3x3::from_conv(&conv(4, 1, 1, 32)).is_none());
-        assert!(Winograd3x3::from_conv(&conv(3, 1, 0, 32)).is_none());
-        assert!(Winograd3x3::from_conv(&conv(3, 1, 1, 24)).is_none());
+        assert!(conv(3, 1, 1, 32).winograd().is_some());
+        assert!(conv(3, 2, 1, 32).winograd().is_none());
+        assert!(conv(4, 1, 1, 32).winograd().is_none());
+        assert!(conv(3, 1, 0, 32).winograd().is_none());
+        assert!(conv(3, 1, 1, 24).winograd().is_none());
         let five_in = HostConv::new(&vec![0.0; 32 * 5 * 9], vec![0.0; 32], [5, 32], 3, 1, 1);
-        assert!(Winograd3x3::from_conv(&five_in).is_none());
+        assert!(five_in.winograd().is_none());
     }
 }
