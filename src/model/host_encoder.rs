@@ -526,8 +526,9 @@ pub(crate) enum HostHead {
 pub struct HostEncoder {
     pub(crate) conv1: HostConv,
     pub(crate) conv2: HostConv,
-    /// `conv2` in Winograd's form, where it has one (a 3x3 stride-1 convolution: the
-    /// reacher's, which keeps 32x32 maps).
+    /// `conv2` in Winograd's form, where it has one for the trunk's frames (a 3x3 stride-1
+    /// convolution: the reacher's, which keeps 32x32 maps); frames are always `FRAME_PX`
+    /// square, so whether the form fits is decided once, at construction.
     conv2_winograd: Option<Winograd3x3>,
     pub(crate) head: HostHead,
     /// The orientation `Q`, row-major `du x du`: `h = Q raw`.
@@ -562,8 +563,10 @@ impl HostEncoder {
         transform: Vec<f32>,
     ) -> Self {
         Self {
+            conv2_winograd: conv2
+                .winograd()
+                .filter(|winograd| winograd.fits(conv1.out_side(FRAME_PX))),
             conv1,
-            conv2_winograd: conv2.winograd(),
             conv2,
             head,
             outputs: (transform.len() as f64).sqrt() as usize,
@@ -610,10 +613,8 @@ impl HostEncoder {
         );
         let side1 = self.conv1.out_side(side0);
         match &mut self.conv2_winograd {
-            Some(winograd) if winograd.fits(side1) => {
-                winograd.forward(simd, &buffers.a, side1, &mut buffers.b, true)
-            }
-            _ => self.conv2.forward(
+            Some(winograd) => winograd.forward(simd, &buffers.a, side1, &mut buffers.b, true),
+            None => self.conv2.forward(
                 &buffers.a,
                 side1,
                 &mut buffers.columns[1],
