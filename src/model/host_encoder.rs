@@ -8,6 +8,8 @@ use burn::nn::conv::Conv2d;
 use gemm::Parallelism;
 
 use super::POLAR_FADE_RADIUS;
+use super::direct_conv::DirectConv;
+use super::soft_argmax::soft_argmax;
 use super::winograd::Winograd3x3;
 use crate::envs::FRAME_PX;
 
@@ -66,6 +68,15 @@ impl HostConv {
     }
 
     /// This convolution in Winograd's form, where it has one (see [`Winograd3x3::new`]).
+    pub fn direct(&self) -> Option<DirectConv> {
+        DirectConv::new(
+            &self.weight,
+            &self.bias,
+            self.channels,
+            [self.kernel, self.stride, self.padding],
+        )
+    }
+
     pub fn winograd(&self) -> Option<Winograd3x3> {
         Winograd3x3::new(
             &self.weight,
@@ -218,140 +229,6 @@ impl HostConv {
         gemm_into(out, columns, &self.weight, o * o, width, cout);
         add_bias(out, &self.bias, relu);
     }
-}
-
-/// The spatial soft-argmax of one frame's keypoint maps `[cells, K]` (a convolution's
-/// output): each map's attention `softmax(beta_k m)` into `attention [cells, K]` (the maps'
-/// layout) and its expectation of each grid (`[cells]` each) into `expectations [K, G]`.
-/// Keys go side by side in blocks of [`KEY_BLOCK`], so each pass reads whole rows of the
-/// maps and vectorises over the keys. Sums are taken in f64, each key's over [`SUM_LANES`]
-/// running sums (lane `c mod SUM_LANES`) added in lane order: over 1024 cells the f32
-/// rounding of an expectation reaches the pairwise angles' gradients in training.
-#[inline(always)]
-pub(crate) fn soft_argmax(
-    maps: &[f32],
-    sharpness: &[f32],
-    grids: &[Vec<f32>],
-    attention: &mut [f32],
-    expectations: &mut [f32],
-) {
-    let k = sharpness.len();
-    let mut first = 0;
-    while first + KEY_BLOCK <= k {
-        soft_argmax_keys::<KEY_BLOCK>(maps, sharpness, grids, first, attention, expectations);
-        first += KEY_BLOCK;
-    }
-    for key in first..k {
-        soft_argmax_keys::<1>(maps, sharpness, grids, key, attention, expectations);
-    }
-}
-
-/// Keys side by side in [`soft_argmax`]: 16 f32 are one AVX-512 register, and the 16 running
-/// f64 sums of one lane in one pass stay in registers.
-const KEY_BLOCK: usize = 16;
-
-/// [`soft_argmax`] of the `B` keys from `first`. Each lane's cells are summed in cell order,
-/// one lane after the other, so a lane's sums live in registers.
-#[inline(always)]
-fn soft_argmax_keys<const B: usize>(
-    maps: &[f32],
-    sharpness: &[f32],
-    grids: &[Vec<f32>],
-    first: usize,
-    attention: &mut [f32],
-    expectations: &mut [f32],
-) {
-    let (k, g) = (sharpness.len(), grids.len());
-    let cells = maps.len() / k;
-    let at = |cell: usize| cell * k + first;
-    let beta = &sharpness[first..][..B];
-    let mut max = [f32::NEG_INFINITY; B];
-    for cell in 0..cells {
-        let m = &maps[at(cell)..][..B];
-        for i in 0..B {
-            max[i] = max[i].max(beta[i] * m[i]);
-        }
-    }
-    let total = lane_sums::<B>(cells, |cell, sum| {
-        let m = &maps[at(cell)..][..B];
-        let a = &mut attention[at(cell)..][..B];
-        for i in 0..B {
-            a[i] = exp_non_positive(beta[i] * m[i] - max[i]);
-            sum[i] += f64::from(a[i]);
-        }
-    });
-    let scale: [f32; B] = std::array::from_fn(|i| (1.0 / total[i]) as f32);
-    for cell in 0..cells {
-        let a = &mut attention[at(cell)..][..B];
-        for i in 0..B {
-            a[i] *= scale[i];
-        }
-    }
-    for (index, grid) in grids.iter().enumerate() {
-        let total = lane_sums::<B>(cells, |cell, dot| {
-            let (a, x) = (&attention[at(cell)..][..B], grid[cell]);
-            for i in 0..B {
-                dot[i] += f64::from(a[i] * x);
-            }
-        });
-        for (i, &e) in total.iter().enumerate() {
-            expectations[(first + i) * g + index] = e as f32;
-        }
-    }
-}
-
-/// `B` sums over `cells` in f64: `add(cell, lane)` adds cell `cell`'s terms to its lane's
-/// running sums (lane `cell mod SUM_LANES`), each lane's cells in order, one lane after the
-/// other so that a lane's sums live in registers; the lanes are then added in order from
-/// -0.0, as `Iterator::sum` adds them.
-#[inline(always)]
-fn lane_sums<const B: usize>(cells: usize, mut add: impl FnMut(usize, &mut [f64; B])) -> [f64; B] {
-    let mut total = [-0.0f64; B];
-    for lane in 0..SUM_LANES {
-        let mut sum = [0.0f64; B];
-        for cell in (lane..cells).step_by(SUM_LANES) {
-            add(cell, &mut sum);
-        }
-        for i in 0..B {
-            total[i] += sum[i];
-        }
-    }
-    total
-}
-
-/// Lanes of each f64 sum in [`soft_argmax`]: one AVX-512 register of f64. A single running
-/// sum is a chain of dependent additions the compiler may not reorder, which costs more than
-/// the exponentials.
-const SUM_LANES: usize = 8;
-
-/// `exp(x)` for `x <= 0` (the softmax's `beta m - max`), within 2 ulp of libm's, in a form
-/// the compiler vectorises (a call to libm's `expf` keeps the softmax loop scalar):
-/// `exp(x) = 2^n exp(r)`, `n = round(x / ln 2)`, `r = x - n ln 2` in `[-ln 2 / 2, ln 2 / 2]`,
-/// with Cephes' degree-6 polynomial for `exp(r)` and `2^n` built in the exponent bits.
-/// Below `-87.3` (where `exp` leaves f32's normal range) it returns 0.
-#[inline(always)]
-pub(crate) fn exp_non_positive(x: f32) -> f32 {
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    const P: [f32; 6] = [
-        1.987_569_1e-4,
-        1.398_199_9e-3,
-        8.333_452e-3,
-        4.166_579_6e-2,
-        1.666_666_5e-1,
-        0.5,
-    ];
-    let clamped = x.max(-87.3);
-    // Rounds to the nearest integer by adding and removing 1.5 * 2^23, where f32 has no
-    // fraction bits left: plain additions, which vectorise on any x86-64, where
-    // `round_ties_even` becomes a call to libm's `rintf` without SSE4.1.
-    const ROUND: f32 = 12_582_912.0;
-    let n = (clamped * std::f32::consts::LOG2_E + ROUND) - ROUND;
-    let r = clamped - n * LN2_HI - n * LN2_LO;
-    let poly = P.iter().fold(0.0f32, |acc, &c| acc * r + c);
-    let exp_r = poly * r * r + r + 1.0;
-    let two_n = f32::from_bits(((n as i32 + 127) as u32) << 23);
-    if x < -87.3 { 0.0 } else { exp_r * two_n }
 }
 
 /// A convolution weight from burn's layout `[out, in, kh, kw]` to the host's `[out, kh, kw,
@@ -521,16 +398,86 @@ pub(crate) enum HostHead {
     },
 }
 
+/// How one of the control encoder's convolutions runs, for its fixed input side.
+#[derive(Debug, Clone)]
+enum ConvForm {
+    /// Winograd's F(2x2, 3x3): 3x3, stride 1, padding 1, whole registers of channels, an
+    /// even side (the reacher's `conv2`, which keeps 32x32 maps).
+    Winograd(Winograd3x3),
+    /// Straight from the padded input: any other convolution with whole registers of
+    /// outputs and a kernel wider than one pixel.
+    Direct(DirectConv),
+    /// im2col + GEMM: a pointwise convolution (the GEMM itself), or channels that do not
+    /// fill registers.
+    Im2col,
+}
+
+impl ConvForm {
+    /// The fastest form of `conv` for inputs of `side x side` pixels.
+    fn fastest(conv: &HostConv, side: usize) -> Self {
+        if let Some(winograd) = conv.winograd().filter(|w| w.fits(side)) {
+            return Self::Winograd(winograd);
+        }
+        match conv.direct().filter(|_| !conv.is_pointwise()) {
+            Some(direct) => Self::Direct(direct),
+            None => Self::Im2col,
+        }
+    }
+
+    /// `conv` (this form's convolution) of `input` (`[side * side, in]`) into `out`, with
+    /// its ReLU; `columns` is the im2col scratch.
+    #[inline(always)]
+    fn forward<S: pulp::Simd>(
+        &mut self,
+        simd: S,
+        conv: &HostConv,
+        input: (&[f32], usize),
+        columns: &mut Vec<f32>,
+        out: &mut Vec<f32>,
+    ) {
+        self.run(simd, conv, input, columns, out, true)
+    }
+
+    /// [`Self::forward`] without the ReLU (the keypoint maps).
+    #[inline(always)]
+    fn forward_linear<S: pulp::Simd>(
+        &mut self,
+        simd: S,
+        conv: &HostConv,
+        input: (&[f32], usize),
+        columns: &mut Vec<f32>,
+        out: &mut Vec<f32>,
+    ) {
+        self.run(simd, conv, input, columns, out, false)
+    }
+
+    #[inline(always)]
+    fn run<S: pulp::Simd>(
+        &mut self,
+        simd: S,
+        conv: &HostConv,
+        (input, side): (&[f32], usize),
+        columns: &mut Vec<f32>,
+        out: &mut Vec<f32>,
+        relu: bool,
+    ) {
+        match self {
+            Self::Winograd(winograd) => winograd.forward(simd, input, side, out, relu),
+            Self::Direct(direct) => direct.forward(simd, input, side, out, relu),
+            Self::Im2col => conv.forward(input, side, columns, out, relu),
+        }
+    }
+}
+
 /// A trained encoder's weights on the host (see the module's doc).
 #[derive(Debug, Clone)]
 pub struct HostEncoder {
     pub(crate) conv1: HostConv,
     pub(crate) conv2: HostConv,
-    /// `conv2` in Winograd's form, where it has one for the trunk's frames (a 3x3 stride-1
-    /// convolution: the reacher's, which keeps 32x32 maps); frames are always `FRAME_PX`
-    /// square, so whether the form fits is decided once, at construction.
-    conv2_winograd: Option<Winograd3x3>,
     pub(crate) head: HostHead,
+    /// How `conv1`, `conv2` and the head's convolution run. Frames are always `FRAME_PX`
+    /// square, so each one's input side, and the form that fits it, is fixed at construction.
+    forms: [ConvForm; 3],
     /// The orientation `Q`, row-major `du x du`: `h = Q raw`.
     pub(crate) transform: Vec<f32>,
     /// How many leading components of `Q raw` are `h`: all of them, or the mean's half of a
@@ -542,8 +489,9 @@ pub struct HostEncoder {
 #[derive(Debug, Clone, Default)]
 struct Buffers {
     input: Vec<f32>,
-    /// im2col of each convolution, kept between calls (see [`HostConv::forward`]).
-    columns: [Vec<f32>; 4],
+    /// im2col of each convolution that runs as im2col + GEMM, kept between calls (see
+    /// [`HostConv::forward`]).
+    columns: [Vec<f32>; 3],
     /// `[cells, K]`: each keypoint's attention.
     attention: Vec<f32>,
     /// `[K, G]`: each keypoint's expectations of the grids.
@@ -562,10 +510,17 @@ impl HostEncoder {
         head: HostHead,
         transform: Vec<f32>,
     ) -> Self {
+        let side1 = conv1.out_side(FRAME_PX);
+        let head_conv = match &head {
+            HostHead::Mlp { conv3, .. } => conv3,
+            HostHead::Keypoints { features, .. } => features,
+        };
         Self {
-            conv2_winograd: conv2
-                .winograd()
-                .filter(|winograd| winograd.fits(conv1.out_side(FRAME_PX))),
+            forms: [
+                ConvForm::fastest(&conv1, FRAME_PX),
+                ConvForm::fastest(&conv2, side1),
+                ConvForm::fastest(head_conv, conv2.out_side(side1)),
+            ],
             conv1,
             conv2,
             head,
@@ -603,35 +558,30 @@ impl HostEncoder {
         let buffers = &mut self.buffers;
         buffers.input.resize(frame.len(), 0.0);
         super::pixel_inputs(frame, &mut buffers.input);
+        let [form1, form2, form3] = &mut self.forms;
         let side0 = FRAME_PX;
-        self.conv1.forward(
-            &buffers.input,
-            side0,
+        let input = (&buffers.input[..], side0);
+        form1.forward(
+            simd,
+            &self.conv1,
+            input,
             &mut buffers.columns[0],
             &mut buffers.a,
-            true,
         );
         let side1 = self.conv1.out_side(side0);
-        match &mut self.conv2_winograd {
-            Some(winograd) => winograd.forward(simd, &buffers.a, side1, &mut buffers.b, true),
-            None => self.conv2.forward(
-                &buffers.a,
-                side1,
-                &mut buffers.columns[1],
-                &mut buffers.b,
-                true,
-            ),
-        }
+        let input = (&buffers.a[..], side1);
+        form2.forward(
+            simd,
+            &self.conv2,
+            input,
+            &mut buffers.columns[1],
+            &mut buffers.b,
+        );
         let side2 = self.conv2.out_side(side1);
         match &self.head {
             HostHead::Mlp { conv3, fc1, fc2 } => {
-                conv3.forward(
-                    &buffers.b,
-                    side2,
-                    &mut buffers.columns[2],
-                    &mut buffers.a,
-                    true,
-                );
+                let input = (&buffers.b[..], side2);
+                form3.forward(simd, conv3, input, &mut buffers.columns[2], &mut buffers.a);
                 // Flattened channel-major, as the tensor `[n, c, y, x]` is.
                 let cells = conv3.out_side(side2).pow(2);
                 let channels = conv3.channels[1];
@@ -653,13 +603,9 @@ impl HostEncoder {
                 hidden,
                 out,
             } => {
-                features.forward(
-                    &buffers.b,
-                    side2,
-                    &mut buffers.columns[3],
-                    &mut buffers.a,
-                    false,
-                );
+                let input = (&buffers.b[..], side2);
+                let maps = &mut buffers.a;
+                form3.forward_linear(simd, features, input, &mut buffers.columns[2], maps);
                 let k = features.channels[1];
                 let (cells, g) = (side2 * side2, grids.len());
                 buffers.attention.resize(k * cells, 0.0);
@@ -731,97 +677,8 @@ impl pulp::WithSimd for Encode<'_> {
 
 #[cfg(test)]
 mod tests {
-    use super::SUM_LANES;
     use crate::model::{cpu_device, frames_to_tensor, to_vec};
     use crate::train::{Method, TrainConfig};
-
-    #[test]
-    fn exp_non_positive_is_within_two_ulp_of_libm() {
-        // Every 1e-4 from -87 to 0, and the edges: 1 at 0, 0 past f32's normal range.
-        let mut worst = 0.0f64;
-        for k in 0..=870_000 {
-            let x = -(k as f32) * 1e-4;
-            let (got, want) = (super::exp_non_positive(x), x.exp());
-            worst = worst.max(f64::from((got - want).abs() / want));
-        }
-        assert!(
-            worst < 2.0 * f64::from(f32::EPSILON),
-            "relative error {worst:e}"
-        );
-        assert_eq!(super::exp_non_positive(0.0), 1.0);
-        assert_eq!(super::exp_non_positive(-100.0), 0.0);
-        assert_eq!(super::exp_non_positive(f32::NEG_INFINITY), 0.0);
-    }
-
-    /// `sum_i a_i b_i` in f64 over [`SUM_LANES`] running sums (lane `i mod SUM_LANES`) added
-    /// in lane order: one key's row of [`super::soft_argmax`]'s sums.
-    fn lane_dot(a: &[f32], b: &[f32]) -> f64 {
-        let mut lanes = [0.0f64; SUM_LANES];
-        for (i, (&a, &b)) in a.iter().zip(b).enumerate() {
-            lanes[i % SUM_LANES] += f64::from(a * b);
-        }
-        lanes.iter().sum()
-    }
-
-    #[test]
-    fn lane_sums_equal_the_plain_sums() {
-        // 21 values: lanes 0-4 take three each, lanes 5-7 two; quarters sum exactly.
-        let values: Vec<f32> = (0..21).map(|i| i as f32 * 0.25).collect();
-        let index: Vec<f32> = (0..21).map(|i| i as f32).collect();
-        assert_eq!(lane_dot(&values, &[1.0; 21]), 52.5);
-        let weighted = lane_dot(&values, &index);
-        assert_eq!(
-            weighted,
-            (0..21).map(|i| (i * i) as f64 * 0.25).sum::<f64>()
-        );
-    }
-
-    /// The soft-argmax over `[cells, K]` maps gives, bit for bit, each key's softmax and
-    /// expectations computed row by row (so training from a seed keeps its weights whichever
-    /// way the passes run), on 1027 cells (a tail past the lanes) and 21 keys of different
-    /// sharpness (a block of 16 and 5 one by one).
-    #[test]
-    fn soft_argmax_equals_the_row_by_row_softmax() {
-        let (cells, k) = (1027, 21);
-        let maps: Vec<f32> = (0..cells * k)
-            .map(|i| ((i * 7919) % 1000) as f32 / 250.0 - 2.0)
-            .collect();
-        let sharpness: Vec<f32> = (0..k).map(|key| 0.5 + key as f32 * 1.5).collect();
-        let grids: Vec<Vec<f32>> = (0..3)
-            .map(|g| {
-                (0..cells)
-                    .map(|c| ((c * (g + 3)) % 64) as f32 / 32.0 - 1.0)
-                    .collect()
-            })
-            .collect();
-        let mut attention = vec![0.0; cells * k];
-        let mut expectations = vec![0.0; k * grids.len()];
-        super::soft_argmax(&maps, &sharpness, &grids, &mut attention, &mut expectations);
-        for (key, &beta) in sharpness.iter().enumerate() {
-            let row: Vec<f32> = (0..cells).map(|c| maps[c * k + key]).collect();
-            let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(beta * v));
-            let e: Vec<f32> = row
-                .iter()
-                .map(|&v| super::exp_non_positive(beta * v - max))
-                .collect();
-            let scale = (1.0 / lane_dot(&e, &vec![1.0; cells])) as f32;
-            let a: Vec<f32> = e.iter().map(|&e| e * scale).collect();
-            for c in 0..cells {
-                assert_eq!(
-                    attention[c * k + key].to_bits(),
-                    a[c].to_bits(),
-                    "key {key} cell {c}"
-                );
-            }
-            for (g, grid) in grids.iter().enumerate() {
-                let want = lane_dot(&a, grid) as f32;
-                assert_eq!(
-                    expectations[key * grids.len() + g].to_bits(),
-                    want.to_bits()
-                );
-            }
-        }
-    }
 
     /// The host encoder gives the tensor encoder's `h` for every shipped head: the point mass's
     /// Cartesian keypoints, the reacher's polar keypoints with their pairwise angles over 32x32

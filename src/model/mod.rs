@@ -3,10 +3,12 @@
 //! Tensors live on a runtime-selected burn [`Device`]: [`cpu_device`] (burn-flex, pure Rust)
 //! for tests and CI, `Device::cuda(0)` with the `cuda` feature. The code never names a backend.
 
+mod direct_conv;
 mod dynamics;
 mod encoder;
 mod host_encoder;
 mod init;
+mod soft_argmax;
 mod trunk;
 mod winograd;
 

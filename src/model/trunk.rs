@@ -16,7 +16,8 @@ use burn::nn::conv::Conv2d;
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use rayon::prelude::*;
 
-use super::host_encoder::{HostConv, add_bias, gemm_into, gemm_strided, soft_argmax};
+use super::host_encoder::{HostConv, add_bias, gemm_into, gemm_strided};
+use super::soft_argmax::soft_argmax;
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 
 /// Frames per chunk: one task of the thread pool, and the unit of the gradient sum's order.

@@ -106,9 +106,22 @@ impl Winograd3x3 {
 
     /// `input` is `[side * side, in]`; writes `[side * side, out]` into `out`, with a ReLU
     /// when `relu`. `side` must [`Self::fits`]. Written in `simd`'s vectors of channels (so
-    /// the compiler cannot vectorise across tiles instead, with gathers and scatters).
+    /// the compiler cannot vectorise across tiles instead, with gathers and scatters), and
+    /// compiled as a function of its own, as [`super::direct_conv::DirectConv::forward`] is.
     #[inline(always)]
     pub fn forward<S: Simd>(
+        &mut self,
+        simd: S,
+        input: &[f32],
+        side: usize,
+        out: &mut Vec<f32>,
+        relu: bool,
+    ) {
+        simd.vectorize(Forward(self, input, side, out, relu))
+    }
+
+    #[inline(always)]
+    fn forward_here<S: Simd>(
         &mut self,
         simd: S,
         input: &[f32],
@@ -298,8 +311,8 @@ fn output_transform<S: Simd>(
 }
 
 /// [`Winograd3x3::forward`]'s arguments, to run it on a chosen vector unit in tests.
-#[cfg(test)]
-struct Forward<'a>(
+/// [`Winograd3x3::forward`]'s arguments, for its own compilation.
+pub(crate) struct Forward<'a>(
     &'a mut Winograd3x3,
     &'a [f32],
     usize,
@@ -307,13 +320,12 @@ struct Forward<'a>(
     bool,
 );
 
-#[cfg(test)]
 impl pulp::WithSimd for Forward<'_> {
     type Output = ();
 
     #[inline(always)]
     fn with_simd<S: Simd>(self, simd: S) {
-        self.0.forward(simd, self.1, self.2, self.3, self.4)
+        self.0.forward_here(simd, self.1, self.2, self.3, self.4)
     }
 }
 
