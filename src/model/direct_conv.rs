@@ -2,13 +2,14 @@
 //! input, a row of output pixels at a time: each output pixel's channels are a few vector
 //! registers, and every kernel tap adds `input x weight row` to them. It does the arithmetic
 //! of im2col + GEMM without writing the im2col matrix (48 floats a pixel for the trunk's
-//! first convolution, whose copy costs as long as half its products).
+//! first convolution, whose copy takes two-thirds as long as its products).
 
 use pulp::Simd;
 
-/// Output pixels computed together: 8 pixels of 2 registers are 16 running sums, each
-/// broadcast input value feeds 2 multiply-adds, and both halves of the register file stay
-/// free for the weights and the next broadcasts.
+/// Output pixels computed together: 8 pixels of 2 registers are 16 running sums, half of
+/// AVX-512's 32 registers, with the rest free for the weights and the broadcast inputs; each
+/// broadcast input feeds 2 multiply-adds. (AVX2 has 16 registers, so there the block spills a
+/// few sums; AVX-512 is the unit this is tuned for.)
 const PIXEL_BLOCK: usize = 8;
 
 /// Output channels must come in multiples of one AVX-512 register of f32, so that every
@@ -65,7 +66,7 @@ impl DirectConv {
     /// `input` is `[side * side, in]`; writes `[out_side^2, out]` into `out`, with a ReLU when
     /// `relu`. Written in `simd`'s vectors of output channels, and compiled as a function of
     /// its own: inlined into the whole encoder, its running sums spill out of the registers
-    /// and it runs at half the speed.
+    /// and it runs at less than half the speed.
     #[inline(always)]
     pub fn forward<S: Simd>(
         &mut self,

@@ -67,7 +67,7 @@ impl HostConv {
         }
     }
 
-    /// This convolution in Winograd's form, where it has one (see [`Winograd3x3::new`]).
+    /// This convolution in the direct form, where it has one (see [`DirectConv::new`]).
     pub fn direct(&self) -> Option<DirectConv> {
         DirectConv::new(
             &self.weight,
@@ -77,6 +77,7 @@ impl HostConv {
         )
     }
 
+    /// This convolution in Winograd's form, where it has one (see [`Winograd3x3::new`]).
     pub fn winograd(&self) -> Option<Winograd3x3> {
         Winograd3x3::new(
             &self.weight,
@@ -401,8 +402,8 @@ pub(crate) enum HostHead {
 /// How one of the control encoder's convolutions runs, for its fixed input side.
 #[derive(Debug, Clone)]
 enum ConvForm {
-    /// Winograd's F(2x2, 3x3): 3x3, stride 1, padding 1, whole registers of channels, an
-    /// even side (the reacher's `conv2`, which keeps 32x32 maps).
+    /// Winograd's F(4x4, 3x3): 3x3, stride 1, padding 1, whole registers of channels, a side
+    /// in multiples of 4 (the reacher's `conv2`, which keeps 32x32 maps).
     Winograd(Winograd3x3),
     /// Straight from the padded input: any other convolution with whole registers of
     /// outputs and a kernel wider than one pixel.
@@ -418,10 +419,10 @@ impl ConvForm {
         if let Some(winograd) = conv.winograd().filter(|w| w.fits(side)) {
             return Self::Winograd(winograd);
         }
-        match conv.direct().filter(|_| !conv.is_pointwise()) {
-            Some(direct) => Self::Direct(direct),
-            None => Self::Im2col,
+        if conv.is_pointwise() {
+            return Self::Im2col;
         }
+        conv.direct().map_or(Self::Im2col, Self::Direct)
     }
 
     /// `conv` (this form's convolution) of `input` (`[side * side, in]`) into `out`, with
@@ -679,6 +680,48 @@ impl pulp::WithSimd for Encode<'_> {
 mod tests {
     use crate::model::{cpu_device, frames_to_tensor, to_vec};
     use crate::train::{Method, TrainConfig};
+
+    /// Each shipped encoder runs its convolutions in the forms the design gives them: the
+    /// first convolution and a strided second one direct, the reacher's stride-1 second by
+    /// Winograd, the keypoint maps' 1x1 as one GEMM and the MLP head's convolution direct.
+    #[test]
+    fn each_convolution_runs_in_its_fastest_form() {
+        use super::ConvForm;
+        use crate::envs::EnvKind;
+        use crate::train::Preset;
+        let names = |forms: &[ConvForm; 3]| {
+            forms.clone().map(|form| match form {
+                ConvForm::Winograd(_) => "winograd",
+                ConvForm::Direct(_) => "direct",
+                ConvForm::Im2col => "im2col",
+            })
+        };
+        for (preset, env, want) in [
+            (
+                Preset::Procl,
+                EnvKind::PointMass,
+                ["direct", "direct", "im2col"],
+            ),
+            (
+                Preset::Procl,
+                EnvKind::Reacher,
+                ["direct", "winograd", "im2col"],
+            ),
+            (
+                Preset::Paper,
+                EnvKind::PointMass,
+                ["direct", "direct", "direct"],
+            ),
+        ] {
+            let config = TrainConfig::preset(preset, Method::Procl, env).model;
+            let encoder = config.init(0, &cpu_device()).expect("model").encoder;
+            assert_eq!(
+                names(&encoder.host_encoder().forms),
+                want,
+                "{preset:?} {env:?}"
+            );
+        }
+    }
 
     /// The host encoder gives the tensor encoder's `h` for every shipped head: the point mass's
     /// Cartesian keypoints, the reacher's polar keypoints with their pairwise angles over 32x32

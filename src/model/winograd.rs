@@ -420,7 +420,7 @@ mod tests {
     }
 
     #[test]
-    fn only_3x3_stride_1_padding_1_convolutions_with_whole_registers_have_the_form() {
+    fn only_3x3_stride_1_padding_1_convolutions_with_whole_registers_and_tiles_have_the_form() {
         let conv = |k, stride, pad, cout| {
             HostConv::new(
                 &vec![0.0; cout * 16 * k * k],
@@ -431,7 +431,9 @@ mod tests {
                 pad,
             )
         };
-        assert!(conv(3, 1, 1, 32).winograd().is_some());
+        let fitting = conv(3, 1, 1, 32).winograd().expect("a 3x3 stride-1 conv");
+        assert!(fitting.fits(32) && fitting.fits(4));
+        assert!(!fitting.fits(30) && !fitting.fits(6) && !fitting.fits(0));
         assert!(conv(3, 2, 1, 32).winograd().is_none());
         assert!(conv(4, 1, 1, 32).winograd().is_none());
         assert!(conv(3, 1, 0, 32).winograd().is_none());
