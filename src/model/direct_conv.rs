@@ -14,7 +14,30 @@ const PIXEL_BLOCK: usize = 8;
 
 /// Output channels must come in multiples of one AVX-512 register of f32, so that every
 /// narrower vector unit's registers (8, 4 or 1 lanes) divide them too.
-const CHANNEL_MULTIPLE: usize = 16;
+pub(crate) const CHANNEL_MULTIPLE: usize = 16;
+
+/// Copies `input` (`[side * side, channels]`) inside a zero border `padding` pixels wide,
+/// into `padded` (`[(side + 2 padding)^2, channels]`), and returns the padded side. The
+/// border stays 0 from the first call; only the interior is rewritten.
+#[inline(always)]
+pub(crate) fn copy_inside_zero_border(
+    input: &[f32],
+    [side, channels]: [usize; 2],
+    padding: usize,
+    padded: &mut Vec<f32>,
+) -> usize {
+    let padded_side = side + 2 * padding;
+    if padded.len() != padded_side * padded_side * channels {
+        padded.clear();
+        padded.resize(padded_side * padded_side * channels, 0.0);
+    }
+    let row = side * channels;
+    for y in 0..side {
+        let to = ((y + padding) * padded_side + padding) * channels;
+        padded[to..][..row].copy_from_slice(&input[y * row..][..row]);
+    }
+    padded_side
+}
 
 /// A convolution's weights laid out for the direct form, with the scratch of one call.
 #[derive(Debug, Clone)]
@@ -77,56 +100,6 @@ impl DirectConv {
         relu: bool,
     ) {
         simd.vectorize(Forward(self, input, side, out, relu))
-    }
-
-    #[inline(always)]
-    fn forward_here<S: Simd>(
-        &mut self,
-        simd: S,
-        input: &[f32],
-        side: usize,
-        out: &mut Vec<f32>,
-        relu: bool,
-    ) {
-        let [cin, cout] = self.channels;
-        let padding = self.shape[2];
-        let padded_side = side + 2 * padding;
-        // The border stays 0 from the first call; the interior is rewritten.
-        if self.padded.len() != padded_side * padded_side * cin {
-            self.padded.clear();
-            self.padded.resize(padded_side * padded_side * cin, 0.0);
-        }
-        for y in 0..side {
-            let from = &input[y * side * cin..][..side * cin];
-            let to = ((y + padding) * padded_side + padding) * cin;
-            self.padded[to..][..side * cin].copy_from_slice(from);
-        }
-        let o = self.out_side(side);
-        out.resize(o * o * cout, 0.0);
-        let lanes = std::mem::size_of::<S::f32s>() / std::mem::size_of::<f32>();
-        let cout_v = cout / lanes;
-        let rows = Rows {
-            weight: S::as_simd_f32s(&self.weight).0,
-            bias: S::as_simd_f32s(&self.bias).0,
-            padded: &self.padded,
-            padded_side,
-            cin,
-            cout_v,
-            shape: self.shape,
-            relu,
-        };
-        let out = S::as_mut_simd_f32s(out).0;
-        for y in 0..o {
-            let out_row = &mut out[y * o * cout_v..][..o * cout_v];
-            let mut v = 0;
-            while v + 2 <= cout_v {
-                rows.row::<2>(simd, y, v, out_row);
-                v += 2;
-            }
-            if v < cout_v {
-                rows.row::<1>(simd, y, v, out_row);
-            }
-        }
     }
 }
 
@@ -201,7 +174,7 @@ impl<S: Simd> Rows<'_, S> {
     }
 }
 
-/// [`DirectConv::forward`]'s arguments, for its own compilation.
+/// [`DirectConv::forward`]'s arguments; its body is compiled as a function of its own.
 pub(crate) struct Forward<'a>(&'a mut DirectConv, &'a [f32], usize, &'a mut Vec<f32>, bool);
 
 impl pulp::WithSimd for Forward<'_> {
@@ -209,7 +182,36 @@ impl pulp::WithSimd for Forward<'_> {
 
     #[inline(always)]
     fn with_simd<S: Simd>(self, simd: S) {
-        self.0.forward_here(simd, self.1, self.2, self.3, self.4)
+        let Self(conv, input, side, out, relu) = self;
+        let [cin, cout] = conv.channels;
+        let padding = conv.shape[2];
+        let padded_side = copy_inside_zero_border(input, [side, cin], padding, &mut conv.padded);
+        let o = conv.out_side(side);
+        out.resize(o * o * cout, 0.0);
+        let lanes = std::mem::size_of::<S::f32s>() / std::mem::size_of::<f32>();
+        let cout_v = cout / lanes;
+        let rows = Rows {
+            weight: S::as_simd_f32s(&conv.weight).0,
+            bias: S::as_simd_f32s(&conv.bias).0,
+            padded: &conv.padded,
+            padded_side,
+            cin,
+            cout_v,
+            shape: conv.shape,
+            relu,
+        };
+        let out = S::as_mut_simd_f32s(out).0;
+        for y in 0..o {
+            let out_row = &mut out[y * o * cout_v..][..o * cout_v];
+            let mut v = 0;
+            while v + 2 <= cout_v {
+                rows.row::<2>(simd, y, v, out_row);
+                v += 2;
+            }
+            if v < cout_v {
+                rows.row::<1>(simd, y, v, out_row);
+            }
+        }
     }
 }
 
@@ -218,40 +220,21 @@ mod tests {
     use pulp::Simd;
 
     use super::Forward;
-    use crate::model::host_encoder::HostConv;
+    use crate::model::host_encoder::{HostConv, form_checks};
 
     /// One convolution's direct form against its im2col + GEMM on inputs of the given sides,
-    /// one after the other on the same instance (its zero border resized between them), with
-    /// and without the ReLU, on the vector unit `run` dispatches to.
+    /// on the vector unit `run` dispatches to.
     fn check_against_im2col(
-        [cin, cout]: [usize; 2],
-        [kernel, stride, padding]: [usize; 3],
+        channels: [usize; 2],
+        shape: [usize; 3],
         sides: &[usize],
         run: &mut dyn FnMut(Forward<'_>),
     ) {
-        let weight: Vec<f32> = (0..cout * cin * kernel * kernel)
-            .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
-            .collect();
-        let bias: Vec<f32> = (0..cout).map(|o| o as f32 * 0.01 - 0.1).collect();
-        let conv = HostConv::new(&weight, bias, [cin, cout], kernel, stride, padding);
+        let conv = form_checks::conv(channels, shape);
         let mut direct = conv.direct().expect("whole registers of outputs");
-        for &side in sides {
-            let input: Vec<f32> = (0..side * side * cin)
-                .map(|i| ((i * 104_729) % 997) as f32 / 997.0 - 0.5)
-                .collect();
-            for relu in [false, true] {
-                let (mut columns, mut want, mut got) = (Vec::new(), Vec::new(), Vec::new());
-                conv.forward(&input, side, &mut columns, &mut want, relu);
-                run(Forward(&mut direct, &input, side, &mut got, relu));
-                assert_eq!(got.len(), want.len());
-                for (i, (g, w)) in got.iter().zip(&want).enumerate() {
-                    assert!(
-                        (g - w).abs() <= 1e-5 * w.abs().max(1.0),
-                        "side {side}, relu {relu}, entry {i}: {g} vs {w}"
-                    );
-                }
-            }
-        }
+        form_checks::assert_matches_im2col(&conv, sides, 1e-5, &mut |input, side, out, relu| {
+            run(Forward(&mut direct, input, side, out, relu))
+        });
     }
 
     /// The direct form gives im2col + GEMM's outputs to f32 rounding, for the trunk's first

@@ -425,41 +425,15 @@ impl ConvForm {
         conv.direct().map_or(Self::Im2col, Self::Direct)
     }
 
-    /// `conv` (this form's convolution) of `input` (`[side * side, in]`) into `out`, with
-    /// its ReLU; `columns` is the im2col scratch.
+    /// `conv` (this form's convolution) of `input` (`[side * side, in]`) into `out`, with a
+    /// ReLU when `relu`; `columns` is the im2col scratch.
     #[inline(always)]
     fn forward<S: pulp::Simd>(
         &mut self,
         simd: S,
         conv: &HostConv,
-        input: (&[f32], usize),
-        columns: &mut Vec<f32>,
-        out: &mut Vec<f32>,
-    ) {
-        self.run(simd, conv, input, columns, out, true)
-    }
-
-    /// [`Self::forward`] without the ReLU (the keypoint maps).
-    #[inline(always)]
-    fn forward_linear<S: pulp::Simd>(
-        &mut self,
-        simd: S,
-        conv: &HostConv,
-        input: (&[f32], usize),
-        columns: &mut Vec<f32>,
-        out: &mut Vec<f32>,
-    ) {
-        self.run(simd, conv, input, columns, out, false)
-    }
-
-    #[inline(always)]
-    fn run<S: pulp::Simd>(
-        &mut self,
-        simd: S,
-        conv: &HostConv,
         (input, side): (&[f32], usize),
-        columns: &mut Vec<f32>,
-        out: &mut Vec<f32>,
+        (columns, out): (&mut Vec<f32>, &mut Vec<f32>),
         relu: bool,
     ) {
         match self {
@@ -562,27 +536,18 @@ impl HostEncoder {
         let [form1, form2, form3] = &mut self.forms;
         let side0 = FRAME_PX;
         let input = (&buffers.input[..], side0);
-        form1.forward(
-            simd,
-            &self.conv1,
-            input,
-            &mut buffers.columns[0],
-            &mut buffers.a,
-        );
+        let scratch = (&mut buffers.columns[0], &mut buffers.a);
+        form1.forward(simd, &self.conv1, input, scratch, true);
         let side1 = self.conv1.out_side(side0);
         let input = (&buffers.a[..], side1);
-        form2.forward(
-            simd,
-            &self.conv2,
-            input,
-            &mut buffers.columns[1],
-            &mut buffers.b,
-        );
+        let scratch = (&mut buffers.columns[1], &mut buffers.b);
+        form2.forward(simd, &self.conv2, input, scratch, true);
         let side2 = self.conv2.out_side(side1);
         match &self.head {
             HostHead::Mlp { conv3, fc1, fc2 } => {
                 let input = (&buffers.b[..], side2);
-                form3.forward(simd, conv3, input, &mut buffers.columns[2], &mut buffers.a);
+                let scratch = (&mut buffers.columns[2], &mut buffers.a);
+                form3.forward(simd, conv3, input, scratch, true);
                 // Flattened channel-major, as the tensor `[n, c, y, x]` is.
                 let cells = conv3.out_side(side2).pow(2);
                 let channels = conv3.channels[1];
@@ -605,8 +570,9 @@ impl HostEncoder {
                 out,
             } => {
                 let input = (&buffers.b[..], side2);
-                let maps = &mut buffers.a;
-                form3.forward_linear(simd, features, input, &mut buffers.columns[2], maps);
+                // The keypoint maps take no ReLU.
+                let scratch = (&mut buffers.columns[2], &mut buffers.a);
+                form3.forward(simd, features, input, scratch, false);
                 let k = features.channels[1];
                 let (cells, g) = (side2 * side2, grids.len());
                 buffers.attention.resize(k * cells, 0.0);
@@ -673,6 +639,54 @@ impl pulp::WithSimd for Encode<'_> {
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, simd: S) {
         self.encoder.encode_here(simd, self.frame, self.h)
+    }
+}
+
+/// What the tests of each convolution form share: a convolution with fixed weights and the
+/// check of a form against im2col + GEMM.
+#[cfg(test)]
+pub(crate) mod form_checks {
+    use super::HostConv;
+
+    /// A form of a convolution run as `(input, side, out, relu)`.
+    pub type RunForm<'a> = dyn FnMut(&[f32], usize, &mut Vec<f32>, bool) + 'a;
+
+    /// A convolution with weights in [-0.5, 0.5) and a small bias, fixed by its shape.
+    pub fn conv([cin, cout]: [usize; 2], [kernel, stride, padding]: [usize; 3]) -> HostConv {
+        let weight: Vec<f32> = (0..cout * cin * kernel * kernel)
+            .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
+            .collect();
+        let bias: Vec<f32> = (0..cout).map(|o| o as f32 * 0.01 - 0.1).collect();
+        HostConv::new(&weight, bias, [cin, cout], kernel, stride, padding)
+    }
+
+    /// `run(input, side, out, relu)`, a form of `conv` run on one instance, against `conv`'s
+    /// im2col + GEMM on an input of each of `sides` in turn (so the form's scratch is resized
+    /// between them), with and without the ReLU: every entry within `tolerance`, relative
+    /// above 1 and absolute below.
+    pub fn assert_matches_im2col(
+        conv: &HostConv,
+        sides: &[usize],
+        tolerance: f32,
+        run: &mut RunForm<'_>,
+    ) {
+        for &side in sides {
+            let input: Vec<f32> = (0..side * side * conv.channels[0])
+                .map(|i| ((i * 104_729) % 997) as f32 / 997.0 - 0.5)
+                .collect();
+            for relu in [false, true] {
+                let (mut columns, mut want, mut got) = (Vec::new(), Vec::new(), Vec::new());
+                conv.forward(&input, side, &mut columns, &mut want, relu);
+                run(&input, side, &mut got, relu);
+                assert_eq!(got.len(), want.len());
+                for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+                    assert!(
+                        (g - w).abs() <= tolerance * w.abs().max(1.0),
+                        "side {side}, relu {relu}, entry {i}: {g} vs {w}"
+                    );
+                }
+            }
+        }
     }
 }
 

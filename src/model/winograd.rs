@@ -26,6 +26,8 @@
 
 use pulp::Simd;
 
+use super::direct_conv::{CHANNEL_MULTIPLE, copy_inside_zero_border};
+
 /// Side of a tile of outputs.
 const OUT_TILE: usize = 4;
 
@@ -37,10 +39,6 @@ const POINTS: usize = IN_TILE * IN_TILE;
 
 /// Tiles transformed and multiplied together: eight rows of accumulators in registers.
 const TILE_BLOCK: usize = 8;
-
-/// Channels must come in multiples of one AVX-512 register of f32, so that every narrower
-/// vector unit's registers (8, 4 or 1 lanes) divide them too.
-const CHANNEL_MULTIPLE: usize = 16;
 
 /// A convolution's weights transformed for F(4x4, 3x3), with the scratch of one call.
 #[derive(Debug, Clone)]
@@ -129,78 +127,6 @@ impl Winograd3x3 {
         relu: bool,
     ) {
         simd.vectorize(Forward(self, input, side, out, relu))
-    }
-
-    #[inline(always)]
-    fn forward_here<S: Simd>(
-        &mut self,
-        simd: S,
-        input: &[f32],
-        side: usize,
-        out: &mut Vec<f32>,
-        relu: bool,
-    ) {
-        debug_assert!(
-            self.fits(side),
-            "a side of {side} pixels has no whole 4x4 tiles"
-        );
-        let [cin, cout] = self.channels;
-        let padded_side = side + 2;
-        // The border stays 0 from the first call; the interior is rewritten.
-        if self.padded.len() != padded_side * padded_side * cin {
-            self.padded.clear();
-            self.padded.resize(padded_side * padded_side * cin, 0.0);
-        }
-        for y in 0..side {
-            let from = &input[y * side * cin..][..side * cin];
-            self.padded[((y + 1) * padded_side + 1) * cin..][..side * cin].copy_from_slice(from);
-        }
-        out.resize(side * side * cout, 0.0);
-        let lanes = std::mem::size_of::<S::f32s>() / std::mem::size_of::<f32>();
-        let [cin_v, cout_v] = [cin / lanes, cout / lanes];
-        let padded = S::as_simd_f32s(&self.padded).0;
-        let transformed = S::as_simd_f32s(&self.transformed).0;
-        let bias = S::as_simd_f32s(&self.bias).0;
-        let out = S::as_mut_simd_f32s(out).0;
-        let per_row = side / OUT_TILE;
-        let tiles = per_row * per_row;
-        let mut first = 0;
-        while first < tiles {
-            let count = TILE_BLOCK.min(tiles - first);
-            let tiles_in = S::as_mut_simd_f32s(&mut self.tiles_in).0;
-            for t in 0..count {
-                let tile = first + t;
-                let (ty, tx) = (tile / per_row, tile % per_row);
-                input_transform(
-                    simd,
-                    padded,
-                    (OUT_TILE * (ty * padded_side + tx)) * cin_v,
-                    [padded_side * cin_v, cin_v],
-                    &mut tiles_in[t * POINTS * cin_v..][..POINTS * cin_v],
-                );
-            }
-            multiply(
-                simd,
-                &self.tiles_in,
-                transformed,
-                [cin, cout_v],
-                S::as_mut_simd_f32s(&mut self.tiles_out).0,
-            );
-            let tiles_out = S::as_simd_f32s(&self.tiles_out).0;
-            for t in 0..count {
-                let tile = first + t;
-                let (ty, tx) = (tile / per_row, tile % per_row);
-                output_transform(
-                    simd,
-                    &tiles_out[t * POINTS * cout_v..][..POINTS * cout_v],
-                    (bias, relu),
-                    out,
-                    (OUT_TILE * (ty * side + tx)) * cout_v,
-                    [side * cout_v, cout_v],
-                );
-            }
-            first += count;
-        }
     }
 }
 
@@ -342,7 +268,7 @@ fn output_transform<S: Simd>(
     }
 }
 
-/// [`Winograd3x3::forward`]'s arguments, for its own compilation.
+/// [`Winograd3x3::forward`]'s arguments; its body is compiled as a function of its own.
 pub(crate) struct Forward<'a>(
     &'a mut Winograd3x3,
     &'a [f32],
@@ -356,7 +282,59 @@ impl pulp::WithSimd for Forward<'_> {
 
     #[inline(always)]
     fn with_simd<S: Simd>(self, simd: S) {
-        self.0.forward_here(simd, self.1, self.2, self.3, self.4)
+        let Self(conv, input, side, out, relu) = self;
+        debug_assert!(
+            conv.fits(side),
+            "a side of {side} pixels has no whole 4x4 tiles"
+        );
+        let [cin, cout] = conv.channels;
+        let padded_side = copy_inside_zero_border(input, [side, cin], 1, &mut conv.padded);
+        out.resize(side * side * cout, 0.0);
+        let lanes = std::mem::size_of::<S::f32s>() / std::mem::size_of::<f32>();
+        let [cin_v, cout_v] = [cin / lanes, cout / lanes];
+        let padded = S::as_simd_f32s(&conv.padded).0;
+        let transformed = S::as_simd_f32s(&conv.transformed).0;
+        let bias = S::as_simd_f32s(&conv.bias).0;
+        let out = S::as_mut_simd_f32s(out).0;
+        let per_row = side / OUT_TILE;
+        let tiles = per_row * per_row;
+        let mut first = 0;
+        while first < tiles {
+            let count = TILE_BLOCK.min(tiles - first);
+            let tiles_in = S::as_mut_simd_f32s(&mut conv.tiles_in).0;
+            for t in 0..count {
+                let tile = first + t;
+                let (ty, tx) = (tile / per_row, tile % per_row);
+                input_transform(
+                    simd,
+                    padded,
+                    (OUT_TILE * (ty * padded_side + tx)) * cin_v,
+                    [padded_side * cin_v, cin_v],
+                    &mut tiles_in[t * POINTS * cin_v..][..POINTS * cin_v],
+                );
+            }
+            multiply(
+                simd,
+                &conv.tiles_in,
+                transformed,
+                [cin, cout_v],
+                S::as_mut_simd_f32s(&mut conv.tiles_out).0,
+            );
+            let tiles_out = S::as_simd_f32s(&conv.tiles_out).0;
+            for t in 0..count {
+                let tile = first + t;
+                let (ty, tx) = (tile / per_row, tile % per_row);
+                output_transform(
+                    simd,
+                    &tiles_out[t * POINTS * cout_v..][..POINTS * cout_v],
+                    (bias, relu),
+                    out,
+                    (OUT_TILE * (ty * side + tx)) * cout_v,
+                    [side * cout_v, cout_v],
+                );
+            }
+            first += count;
+        }
     }
 }
 
@@ -365,40 +343,22 @@ mod tests {
     use pulp::Simd;
 
     use super::Forward;
-    use crate::model::host_encoder::HostConv;
+    use crate::model::host_encoder::{HostConv, form_checks};
 
     /// One convolution's Winograd form against its im2col + GEMM on inputs of the given
-    /// sides, one after the other on the same instance (its zero border resized between
-    /// them), with and without the ReLU, on the vector unit `run` dispatches to.
+    /// sides, on the vector unit `run` dispatches to. The transforms' entries up to 8 cost
+    /// about three bits of f32's precision, hence 5e-5.
     fn check_against_im2col(
-        [cin, cout]: [usize; 2],
+        channels: [usize; 2],
         sides: &[usize],
         run: &mut dyn FnMut(Forward<'_>),
     ) {
-        let weight: Vec<f32> = (0..cout * cin * 9)
-            .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
-            .collect();
-        let bias: Vec<f32> = (0..cout).map(|o| o as f32 * 0.01 - 0.1).collect();
-        let conv = HostConv::new(&weight, bias, [cin, cout], 3, 1, 1);
+        let conv = form_checks::conv(channels, [3, 1, 1]);
         let mut winograd = conv.winograd().expect("a 3x3 stride-1 conv");
-        for &side in sides {
-            assert!(winograd.fits(side));
-            let input: Vec<f32> = (0..side * side * cin)
-                .map(|i| ((i * 104_729) % 997) as f32 / 997.0 - 0.5)
-                .collect();
-            for relu in [false, true] {
-                let (mut columns, mut want, mut got) = (Vec::new(), Vec::new(), Vec::new());
-                conv.forward(&input, side, &mut columns, &mut want, relu);
-                run(Forward(&mut winograd, &input, side, &mut got, relu));
-                assert_eq!(got.len(), want.len());
-                for (i, (g, w)) in got.iter().zip(&want).enumerate() {
-                    assert!(
-                        (g - w).abs() <= 5e-5 * w.abs().max(1.0),
-                        "side {side}, relu {relu}, entry {i}: {g} vs {w}"
-                    );
-                }
-            }
-        }
+        assert!(sides.iter().all(|&side| winograd.fits(side)));
+        form_checks::assert_matches_im2col(&conv, sides, 5e-5, &mut |input, side, out, relu| {
+            run(Forward(&mut winograd, input, side, out, relu))
+        });
     }
 
     /// The Winograd form gives im2col + GEMM's outputs to f32 rounding: a 32x32 input (8
