@@ -16,6 +16,12 @@ const PIXEL_BLOCK: usize = 8;
 /// narrower vector unit's registers (8, 4 or 1 lanes) divide them too.
 pub(crate) const CHANNEL_MULTIPLE: usize = 16;
 
+/// Side of a convolution's output for an input of `side x side` pixels, with `[kernel, stride,
+/// padding]` of `shape`.
+pub(crate) fn out_side(side: usize, [kernel, stride, padding]: [usize; 3]) -> usize {
+    (side + 2 * padding - kernel) / stride + 1
+}
+
 /// Copies `input` (`[side * side, channels]`) inside a zero border `padding` pixels wide,
 /// into `padded` (`[(side + 2 padding)^2, channels]`), and returns the padded side. The
 /// border stays 0 from the first call; only the interior is rewritten.
@@ -78,12 +84,6 @@ impl DirectConv {
             shape,
             padded: Vec::new(),
         })
-    }
-
-    /// Side of the output for an input of `side x side` pixels.
-    pub fn out_side(&self, side: usize) -> usize {
-        let [kernel, stride, padding] = self.shape;
-        (side + 2 * padding - kernel) / stride + 1
     }
 
     /// `input` is `[side * side, in]`; writes `[out_side^2, out]` into `out`, with a ReLU when
@@ -186,7 +186,7 @@ impl pulp::WithSimd for Forward<'_> {
         let [cin, cout] = conv.channels;
         let padding = conv.shape[2];
         let padded_side = copy_inside_zero_border(input, [side, cin], padding, &mut conv.padded);
-        let o = conv.out_side(side);
+        let o = out_side(side, conv.shape);
         out.resize(o * o * cout, 0.0);
         let lanes = std::mem::size_of::<S::f32s>() / std::mem::size_of::<f32>();
         let cout_v = cout / lanes;

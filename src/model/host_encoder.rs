@@ -8,7 +8,7 @@ use burn::nn::conv::Conv2d;
 use gemm::Parallelism;
 
 use super::POLAR_FADE_RADIUS;
-use super::direct_conv::DirectConv;
+use super::direct_conv::{self, DirectConv};
 use super::soft_argmax::soft_argmax;
 use super::winograd::Winograd3x3;
 use crate::envs::FRAME_PX;
@@ -94,7 +94,7 @@ impl HostConv {
     }
 
     pub fn out_side(&self, side: usize) -> usize {
-        (side + 2 * self.padding - self.kernel) / self.stride + 1
+        direct_conv::out_side(side, [self.kernel, self.stride, self.padding])
     }
 
     /// Width of a patch row of the im2col matrix: `kh kw in`.

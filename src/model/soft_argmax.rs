@@ -46,13 +46,31 @@ fn soft_argmax_portable(
     attention: &mut [f32],
     expectations: &mut [f32],
 ) {
+    by_key_blocks(
+        maps,
+        sharpness,
+        grids,
+        (attention, expectations),
+        |first, a, e| soft_argmax_keys::<KEY_BLOCK>(maps, sharpness, grids, first, a, e),
+    )
+}
+
+/// [`soft_argmax`] with `block(first, attention, expectations)` computing each whole block
+/// of [`KEY_BLOCK`] keys from `first`, and the keys past the last whole block one by one.
+#[inline(always)]
+fn by_key_blocks(
+    maps: &[f32],
+    sharpness: &[f32],
+    grids: &[Vec<f32>],
+    (attention, expectations): (&mut [f32], &mut [f32]),
+    mut block: impl FnMut(usize, &mut [f32], &mut [f32]),
+) {
     let k = sharpness.len();
-    let mut first = 0;
-    while first + KEY_BLOCK <= k {
-        soft_argmax_keys::<KEY_BLOCK>(maps, sharpness, grids, first, attention, expectations);
-        first += KEY_BLOCK;
+    let whole = k - k % KEY_BLOCK;
+    for first in (0..whole).step_by(KEY_BLOCK) {
+        block(first, attention, expectations);
     }
-    for key in first..k {
+    for key in whole..k {
         soft_argmax_keys::<1>(maps, sharpness, grids, key, attention, expectations);
     }
 }
@@ -178,9 +196,7 @@ mod avx512 {
     use pulp::x86::V4;
     use pulp::{Simd, f32x8, f32x16, f64x8};
 
-    use super::{
-        EXP_FLOOR, EXP_POLY, KEY_BLOCK, LN2_HI, LN2_LO, ROUND, SUM_LANES, soft_argmax_keys,
-    };
+    use super::{EXP_FLOOR, EXP_POLY, KEY_BLOCK, LN2_HI, LN2_LO, ROUND, SUM_LANES, by_key_blocks};
 
     /// The arguments of [`super::soft_argmax`], with the vector unit that runs them.
     pub(super) struct KeyBlocks<'a> {
@@ -206,20 +222,22 @@ mod avx512 {
                 expectations,
             } = self;
             let k = sharpness.len();
-            let mut first = 0;
-            while first + KEY_BLOCK <= k {
-                let block = Block {
-                    v4,
-                    first,
-                    k,
-                    cells: maps.len() / k,
-                };
-                block.soft_argmax(maps, sharpness, grids, attention, expectations);
-                first += KEY_BLOCK;
-            }
-            for key in first..k {
-                soft_argmax_keys::<1>(maps, sharpness, grids, key, attention, expectations);
-            }
+            let cells = maps.len() / k.max(1);
+            by_key_blocks(
+                maps,
+                sharpness,
+                grids,
+                (attention, expectations),
+                |first, a, e| {
+                    let block = Block {
+                        v4,
+                        first,
+                        k,
+                        cells,
+                    };
+                    block.soft_argmax(maps, sharpness, grids, a, e)
+                },
+            )
         }
     }
 
