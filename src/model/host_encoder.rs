@@ -518,6 +518,22 @@ impl HostEncoder {
         }
     }
 
+    /// The same encoder with `h` turned by `p` (row-major `du x du`, `du` = [`Self::latent_dim`]):
+    /// `h -> p h`, folded into the orientation's leading rows.
+    pub(crate) fn turned(self, p: &[f32]) -> Self {
+        let (du, full) = (self.outputs, (self.transform.len() as f64).sqrt() as usize);
+        assert_eq!(p.len(), du * du, "a {du} x {du} turn");
+        let mut transform = self.transform.clone();
+        for i in 0..du {
+            for j in 0..full {
+                transform[i * full + j] = (0..du)
+                    .map(|k| p[i * du + k] * self.transform[k * full + j])
+                    .sum();
+            }
+        }
+        Self { transform, ..self }
+    }
+
     /// `h` of one RGB u8 frame (64x64, row-major, channels innermost), written into `h`.
     pub fn encode(&mut self, frame: &[u8], h: &mut [f64]) {
         pulp::Arch::new().dispatch(Encode {

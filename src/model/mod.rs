@@ -171,7 +171,7 @@ impl ModelConfig {
 pub(crate) const LATENT_TRANSFORM: &str = "latent_transform";
 
 /// A fresh orientation `Q = I` (du x du), excluded from training.
-fn transform_param(du: usize, device: &Device) -> burn::module::Param<Tensor<2>> {
+pub(crate) fn transform_param(du: usize, device: &Device) -> burn::module::Param<Tensor<2>> {
     burn::module::Param::from_tensor(Tensor::eye(du, device)).set_require_grad(false)
 }
 

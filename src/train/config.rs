@@ -331,9 +331,11 @@ impl TrainConfig {
             Method::Pc3 => config.loss.lambda_r = 0.0,
             Method::Nvae => {
                 config.nvae = Some(NvaeConfig::for_action_dim(du));
-                // The search reorients ProCL's latent by its Lyapunov risk; the NewtonianVAE's
-                // orientation is the transition prior's business.
-                config.orientation_search_every = 0;
+                // Its PID acts on each latent coordinate with its own action, the
+                // correspondence the prior's diagonal `C` stands for but the ELBO barely
+                // enforces: the readout is turned by the action response, as ProCL's latent
+                // is on the reacher and Fetch (docs/design.md, "Baselines").
+                config.orientation_criterion = OrientationCriterion::ActionResponse;
                 config.batch_size = NVAE_BATCH_SIZE;
                 config.steps = NVAE_STEPS;
             }
@@ -535,10 +537,12 @@ impl TrainConfig {
                         format!("must equal the action dimension {du} of {source}"),
                     ));
                 }
-                if self.orientation_search_every != 0 {
+                if self.orientation_search_every > 0
+                    && self.orientation_criterion != OrientationCriterion::ActionResponse
+                {
                     return Err(Error::config(
-                        "orientation_search_every",
-                        "must be 0 for method nvae (the search is ProCL's)",
+                        "orientation_criterion",
+                        "must be `action-response` for method nvae (`risk` is ProCL's Lyapunov risk, which the NewtonianVAE has no dynamics for)",
                     ));
                 }
                 nvae.validate()?;

@@ -117,23 +117,34 @@ impl Objective for ProclObjective<'_> {
     }
 
     fn after_update(&mut self, model: ProclModel, step: u64) -> Result<ProclModel> {
-        let every = self.config.orientation_search_every;
-        let Some(search) = self.search.as_mut() else {
-            return Ok(model);
-        };
-        if !(step + 1).is_multiple_of(every) {
-            return Ok(model);
-        }
-        let rule = WindowRule {
-            margin: self.config.orientation_margin,
-            streak: self.config.orientation_streak,
-            tolerance: self.config.orientation_tolerance,
-        };
-        let Some(flip) = search.end_window(&self.run.dir, step + 1, rule)? else {
-            return Ok(model);
-        };
-        Ok(model.reorient_latent(&flip))
+        let turn = orientation_window_end(self.search.as_mut(), self.config, self.run, step)?;
+        Ok(match turn {
+            Some(flip) => model.reorient_latent(&flip),
+            None => model,
+        })
     }
+}
+
+/// After step `step` (0-based): where an orientation window ends there, the reorientation
+/// `h -> p h` its evidence asks for (logged in the run folder), if any.
+fn orientation_window_end(
+    search: Option<&mut LatentOrienter>,
+    config: &TrainConfig,
+    run: &RunPaths,
+    step: u64,
+) -> Result<Option<Vec<f32>>> {
+    let Some(search) = search else {
+        return Ok(None);
+    };
+    if !(step + 1).is_multiple_of(config.orientation_search_every) {
+        return Ok(None);
+    }
+    let rule = WindowRule {
+        margin: config.orientation_margin,
+        streak: config.orientation_streak,
+        tolerance: config.orientation_tolerance,
+    };
+    search.end_window(&run.dir, step + 1, rule)
 }
 
 /// Trains `config` on `data` into the run folder `run`. With `resume`, continues from the
@@ -212,7 +223,9 @@ pub fn train_interruptible(
     match &config.nvae {
         Some(nvae) => {
             let model = nvae.init(config.seed, device)?;
-            let objective = NvaeObjective::new(config, nvae, data, run, device)?;
+            let search = (config.orientation_search_every > 0)
+                .then(|| LatentOrienter::new(config.orientation_criterion, data.action_dim()));
+            let objective = NvaeObjective::new(config, nvae, data, run, device, search)?;
             run_training(
                 objective,
                 model,

@@ -9,14 +9,18 @@ use rand::RngExt;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::{Objective, RunPaths, TrainConfig, normal_tensor, step_rng, truncate_metrics};
+use super::orientation::LatentOrienter;
+use super::{
+    Objective, RunPaths, TrainConfig, normal_tensor, orientation_window_end, step_rng,
+    truncate_metrics,
+};
 use crate::baselines::nvae::{
     ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, VALIDATION_NAMES, elbo_loss,
 };
 use crate::data::{Dataset, PixelSpread};
 use crate::error::{Error, Result};
 use crate::losses::StepValues;
-use crate::model::{TrunkTape, frames_to_tensor};
+use crate::model::{TrunkTape, frames_to_tensor, to_vec};
 
 /// Validation windows at most: enough for a stable mean, few enough to cost a few steps.
 const VALIDATION_WINDOWS: usize = 64;
@@ -144,6 +148,23 @@ impl<'a> WindowBatch<'a> {
     }
 }
 
+/// The controller's latent's second differences `h_{t+1} - 2 h_t + h_{t-1}`, `h = Q mean`,
+/// for `t = 1..len - 1` of every window: row-major `[windows (len - 2), du]`, the rows of the
+/// batch's actions `u_t` (what the action response regresses). `mean` is window-major
+/// `[windows len, du]`, `q` row-major `du x du`.
+fn readout_second_differences(mean: &[f32], q: &[f32], du: usize, len: usize) -> Vec<f32> {
+    let mut a = Vec::with_capacity(mean.len());
+    for window in mean.chunks_exact(len * du) {
+        let row = |k: usize| &window[k * du..(k + 1) * du];
+        for t in 1..len - 1 {
+            let (prev, now, next) = (row(t - 1), row(t), row(t + 1));
+            let raw: Vec<f32> = (0..du).map(|j| next[j] - 2.0 * now[j] + prev[j]).collect();
+            a.extend((0..du).map(|i| (0..du).map(|j| q[i * du + j] * raw[j]).sum::<f32>()));
+        }
+    }
+    a
+}
+
 /// The stopping rule: a run has plateaued once its validation ELBO has not improved on the
 /// best so far by more than `tolerance` (relative) for `patience` validations in a row.
 #[derive(Debug, Clone)]
@@ -188,6 +209,9 @@ pub(crate) struct NvaeObjective<'a> {
     plateau: PlateauRule,
     /// The validation windows and noise, drawn once (`None` without validation episodes).
     validation: Option<WindowBatch<'a>>,
+    /// The readout orientation's chooser (action response only; `None`: the readout stays
+    /// the identity).
+    search: Option<LatentOrienter>,
 }
 
 impl<'a> NvaeObjective<'a> {
@@ -197,6 +221,7 @@ impl<'a> NvaeObjective<'a> {
         data: &'a Dataset,
         run: &'a RunPaths,
         device: &'a Device,
+        search: Option<LatentOrienter>,
     ) -> Result<Self> {
         let split = EpisodeSplit::of(data, nvae)?;
         let validation = (!split.validation.is_empty())
@@ -210,6 +235,7 @@ impl<'a> NvaeObjective<'a> {
             split,
             plateau: PlateauRule::new(nvae.plateau_patience, nvae.plateau_tolerance),
             validation,
+            search,
         })
     }
 
@@ -295,6 +321,12 @@ impl Objective for NvaeObjective<'_> {
         );
         let batch = WindowBatch::new(self.data, &windows, len, &mut rng, self.device);
         let (inputs, tape) = batch.inputs(model, self.device);
+        if let Some(LatentOrienter::ActionResponse(response)) = self.search.as_mut() {
+            let mean = to_vec(inputs.mean.clone().detach());
+            let du = inputs.u.dims()[1];
+            let a = readout_second_differences(&mean, &model.encoder.readout(), du, len);
+            response.observe_rows(&a, &to_vec(inputs.u.clone()));
+        }
         let terms = elbo_loss(
             model,
             self.nvae,
@@ -303,6 +335,15 @@ impl Objective for NvaeObjective<'_> {
             self.dt(),
         );
         (terms.total.clone(), terms.values(), tape)
+    }
+
+    fn after_update(&mut self, mut model: NvaeModel, step: u64) -> Result<NvaeModel> {
+        if let Some(turn) =
+            orientation_window_end(self.search.as_mut(), self.config, self.run, step)?
+        {
+            model.encoder = model.encoder.reorient_readout(&turn);
+        }
+        Ok(model)
     }
 
     fn stop_after(&mut self, model: &NvaeModel, step: u64) -> Result<bool> {
@@ -351,6 +392,23 @@ mod tests {
         // Patience 0 never stops.
         let mut rule = PlateauRule::new(0, 0.01);
         assert!((0..10).all(|_| !rule.observe(1.0)));
+    }
+
+    #[test]
+    fn second_differences_are_taken_within_windows_and_turned_by_the_readout() {
+        // Two windows of 4 frames, du = 2. Window 0: x = t^2 (second difference 2), y = 0;
+        // window 1: x = 0, y = -t^3 (second differences -6 at t = 1, -12 at t = 2).
+        let mean = [
+            0.0, 0.0, 1.0, 0.0, 4.0, 0.0, 9.0, 0.0, //
+            0.0, 0.0, 0.0, -1.0, 0.0, -8.0, 0.0, -27.0,
+        ];
+        let identity = [1.0, 0.0, 0.0, 1.0];
+        let a = readout_second_differences(&mean, &identity, 2, 4);
+        assert_eq!(a, vec![2.0, 0.0, 2.0, 0.0, 0.0, -6.0, 0.0, -12.0]);
+        // A quarter turn h = (-y, x).
+        let turn = [0.0, -1.0, 1.0, 0.0];
+        let a = readout_second_differences(&mean, &turn, 2, 4);
+        assert_eq!(a, vec![0.0, 2.0, 0.0, 2.0, 6.0, 0.0, 12.0, 0.0]);
     }
 
     #[test]

@@ -24,7 +24,7 @@ fn point_mass_data(transitions: usize) -> Dataset {
 fn tiny_config(steps: u64) -> TrainConfig {
     let mut config = TrainConfig::preset(Preset::Procl, Method::Nvae, EnvKind::PointMass);
     (config.seed, config.steps, config.batch_size) = (2, steps, 4);
-    config.checkpoint_every = steps;
+    (config.checkpoint_every, config.orientation_search_every) = (steps, steps);
     config.learning_rate = 3e-3;
     let nvae = config.nvae.as_mut().unwrap();
     nvae.sequence_len = 6;
@@ -61,7 +61,12 @@ fn nvae_settings_are_checked_by_field_name() {
         parse("method = \"nvae\"\n[nvae]\nrecon_std = 0.05\n[nvae.pid]\nki = 0.0\n").unwrap();
     let nvae = config.nvae.unwrap();
     assert_eq!((nvae.recon_std, nvae.pid.ki, nvae.pid.kp), (0.05, 0.0, 8.0));
-    assert_eq!(config.orientation_search_every, 0);
+    // The readout is oriented by the action response; the risk is ProCL's.
+    assert_eq!(config.orientation_search_every, 50);
+    assert_eq!(
+        config.orientation_criterion,
+        procl::train::orientation::OrientationCriterion::ActionResponse
+    );
     for (text, needle) in [
         ("[nvae]\nrecon_std = 0.05\n", "method nvae only"),
         (
@@ -74,8 +79,8 @@ fn nvae_settings_are_checked_by_field_name() {
         ),
         ("method = \"nvae\"\n[nvae]\nreconstd = 0.1\n", "reconstd"),
         (
-            "method = \"nvae\"\norientation_search_every = 50\n",
-            "orientation_search_every",
+            "method = \"nvae\"\norientation_criterion = \"risk\"\n",
+            "orientation_criterion",
         ),
     ] {
         let err = parse(text).unwrap_err().to_string();
@@ -158,6 +163,7 @@ fn a_plateaued_validation_elbo_ends_the_run_with_a_checkpoint() {
     let other = dir.path().join("interrupted");
     let interrupted = TrainConfig {
         checkpoint_every: 2,
+        orientation_search_every: 2,
         ..config.clone()
     };
     let paths = RunPaths::new(&other);
@@ -199,6 +205,10 @@ fn same_seed_gives_the_same_nvae_and_resume_is_refused_for_a_changed_config() {
     let bytes = |run: &Path| std::fs::read(RunPaths::new(run).checkpoint()).unwrap();
     assert!(bytes(&a) == bytes(&b), "same seed, different checkpoints");
     assert_eq!(metrics(&a), metrics(&b));
+    // The readout's action response was fitted over the window that ends at step 3.
+    let response = std::fs::read_to_string(a.join("action_response.csv")).unwrap();
+    let rows: Vec<&str> = response.lines().collect();
+    assert!(rows.len() == 2 && rows[1].starts_with("3,"), "{response}");
     // The nvae table is part of the resolved config: a changed one cannot resume the run.
     let mut other = config.clone();
     other.steps = 6;
@@ -230,7 +240,7 @@ fn eval_diagnose_and_track_an_nvae_run_with_pid() {
     let tiny = dir.path().join("tiny.toml");
     std::fs::write(
         &tiny,
-        "batch_size = 8\ncheckpoint_every = 2\n[nvae]\ntrunk_channels = [4, 4]\n\
+        "batch_size = 8\ncheckpoint_every = 2\norientation_search_every = 1\n[nvae]\ntrunk_channels = [4, 4]\n\
          decoder_hidden = 8\ndecoder_channels = [4, 4, 4]\n\
          [nvae.encoder_head]\nkind = \"mlp\"\nhidden = 8\n",
     )

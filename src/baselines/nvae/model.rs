@@ -7,17 +7,23 @@ use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::relu;
 use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 
 use super::NvaeConfig;
-use crate::model::{Encoder, EncoderConfig, HostEncoder, LatentEncoder, TrunkTape, reinit_params};
+use crate::model::{
+    Encoder, EncoderConfig, HostEncoder, LatentEncoder, TrunkTape, reinit_params, to_vec,
+};
 
 /// The encoder `q(x | frame) = N(mean, diag(exp(log_std))^2)`: ProCL's conv trunk and head
 /// with `2 du` outputs, split into the mean and the log std. As a [`LatentEncoder`] it gives
-/// the posterior mean, the latent the controller acts on.
+/// the posterior mean turned by the readout orientation `Q`, the latent the controller acts on.
 #[derive(Module, Debug)]
 pub struct GaussianEncoder {
     net: Encoder,
+    /// The readout orientation `Q` (`du x du`, not trained): the controller's latent is
+    /// `h = Q mean`. The ELBO works on the unturned mean, so choosing `Q` (by the action
+    /// response, [`crate::train::orientation`]) leaves training's losses as they are.
+    pub latent_transform: Param<Tensor<2>>,
 }
 
 impl GaussianEncoder {
@@ -25,12 +31,29 @@ impl GaussianEncoder {
     pub fn place_polar_frame(self, spread: impl FnOnce() -> crate::data::PixelSpread) -> Self {
         Self {
             net: self.net.place_polar_frame(spread),
+            ..self
         }
     }
 
     /// The polar head's centre, as [`Encoder::polar_centre`].
     pub fn polar_centre(&self) -> Option<[f32; 2]> {
         self.net.polar_centre()
+    }
+
+    /// The readout orientation `Q`, row-major `du x du`.
+    pub fn readout(&self) -> Vec<f32> {
+        to_vec(self.latent_transform.val())
+    }
+
+    /// Turns the controller's latent by `p` (row-major `du x du`): `Q -> p Q`.
+    pub fn reorient_readout(self, p: &[f32]) -> Self {
+        let q = self.latent_transform.val();
+        let du = q.dims()[0];
+        let p = Tensor::<2>::from_data(TensorData::new(p.to_vec(), [du, du]), &q.device());
+        Self {
+            latent_transform: self.latent_transform.map(|q| p.matmul(q)),
+            ..self
+        }
     }
 
     /// `frames [n, 3, 64, 64]` -> `(mean, log_std)`, `[n, du]` each.
@@ -56,13 +79,16 @@ impl GaussianEncoder {
 
 impl LatentEncoder for GaussianEncoder {
     fn encode(&self, frames: Tensor<4>) -> Tensor<2> {
-        self.posterior(frames).0
+        // Rows are samples: h = mean Q^T.
+        let mean = self.posterior(frames).0;
+        mean.matmul(self.latent_transform.val().transpose())
     }
     fn latent_dim(&self) -> usize {
         self.net.latent_dim() / 2
     }
     fn host_encoder(&self) -> Option<HostEncoder> {
-        Some(self.net.host_encoder().leading(self.latent_dim()))
+        let host = self.net.host_encoder().leading(self.latent_dim());
+        Some(host.turned(&self.readout()))
     }
 }
 
@@ -179,6 +205,7 @@ impl NvaeConfig {
         let model = NvaeModel {
             encoder: GaussianEncoder {
                 net: self.encoder_config().init(device),
+                latent_transform: crate::model::transform_param(du, device),
             },
             decoder: Decoder {
                 fc1: LinearConfig::new(du, self.decoder_hidden).init(device),
@@ -244,7 +271,7 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn host_encoder_gives_the_posterior_mean() {
+    fn host_encoder_gives_the_posterior_mean_turned_by_the_readout() {
         let device = cpu_device();
         let frames = crate::model::start_frames(crate::envs::EnvKind::PointMass, 3);
         for head in [
@@ -262,17 +289,28 @@ pub(crate) mod tests {
             };
             let encoder = config.init(2, &device).unwrap().encoder;
             let input = crate::model::frames_to_tensor(frames.iter().map(|f| &f[..]), &device);
-            let (mean, _) = encoder.posterior(input);
+            let (mean, _) = encoder.posterior(input.clone());
             let mean = to_vec(mean);
+            // The readout turned by 30 degrees, then mirrored: h = p mean.
+            let (c, s) = (30f32.to_radians().cos(), 30f32.to_radians().sin());
+            let p = [c, -s, -s, -c];
+            let encoder = encoder.reorient_readout(&p);
+            let turned: Vec<f32> = mean
+                .chunks_exact(2)
+                .flat_map(|m| [p[0] * m[0] + p[1] * m[1], p[2] * m[0] + p[3] * m[1]])
+                .collect();
+            let encoded = to_vec(encoder.encode(input));
             let mut host = encoder.host_encoder().expect("a host copy");
             assert_eq!(host.latent_dim(), 2);
             for (k, frame) in frames.iter().enumerate() {
                 let mut h = [0.0; 2];
                 host.encode(frame, &mut h);
-                for (got, want) in h.iter().zip(&mean[2 * k..2 * k + 2]) {
+                for j in 0..2 {
+                    let want = turned[2 * k + j];
+                    let (got_host, got) = (h[j], encoded[2 * k + j]);
                     assert!(
-                        (got - f64::from(*want)).abs() < 1e-4,
-                        "{head:?}: {got} vs {want}"
+                        (got_host - f64::from(want)).abs() < 1e-4 && (got - want).abs() < 1e-5,
+                        "{head:?}: host {got_host}, encode {got}, want {want}"
                     );
                 }
             }
