@@ -189,15 +189,22 @@ impl ProclModel {
     /// the PD-controllable one of the mirror images and axis orders that gradient descent
     /// cannot move between (it would have to collapse a latent axis on the way).
     pub fn reorient_latent(self, p: &[f32]) -> Self {
-        let device = self.encoder.latent_transform.val().device();
-        let du = (p.len() as f64).sqrt() as usize;
-        let p = Tensor::<2>::from_data(TensorData::new(p.to_vec(), [du, du]), &device);
-        let apply = |q: burn::module::Param<Tensor<2>>| q.map(|q| p.clone().matmul(q));
         let mut model = self;
-        model.encoder.latent_transform = apply(model.encoder.latent_transform);
-        model.dynamics.latent_transform = apply(model.dynamics.latent_transform);
+        model.encoder.latent_transform = turn_transform(model.encoder.latent_transform, p);
+        model.dynamics.latent_transform = turn_transform(model.dynamics.latent_transform, p);
         model
     }
+}
+
+/// The orientation `Q` turned by `p` (row-major, the same size): `Q -> p Q`, so `h -> p h`.
+pub(crate) fn turn_transform(
+    q: burn::module::Param<Tensor<2>>,
+    p: &[f32],
+) -> burn::module::Param<Tensor<2>> {
+    q.map(|q| {
+        let du = q.dims()[0];
+        Tensor::<2>::from_data(TensorData::new(p.to_vec(), [du, du]), &q.device()).matmul(q)
+    })
 }
 
 /// Marks a freshly built parameter tensor as trainable when it lives on an autodiff device

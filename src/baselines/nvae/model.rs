@@ -7,11 +7,12 @@ use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::tensor::activation::relu;
 use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
 
 use super::NvaeConfig;
 use crate::model::{
     Encoder, EncoderConfig, HostEncoder, LatentEncoder, TrunkTape, reinit_params, to_vec,
+    turn_transform,
 };
 
 /// The encoder `q(x | frame) = N(mean, diag(exp(log_std))^2)`: ProCL's conv trunk and head
@@ -47,11 +48,8 @@ impl GaussianEncoder {
 
     /// Turns the controller's latent by `p` (row-major `du x du`): `Q -> p Q`.
     pub fn reorient_readout(self, p: &[f32]) -> Self {
-        let q = self.latent_transform.val();
-        let du = q.dims()[0];
-        let p = Tensor::<2>::from_data(TensorData::new(p.to_vec(), [du, du]), &q.device());
         Self {
-            latent_transform: self.latent_transform.map(|q| p.matmul(q)),
+            latent_transform: turn_transform(self.latent_transform, p),
             ..self
         }
     }
