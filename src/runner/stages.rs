@@ -253,16 +253,18 @@ pub fn reach_protocol(env: EnvKind, episodes: usize, horizon: Option<usize>) -> 
 /// per step.
 pub struct ThrottledLine {
     every: std::time::Duration,
-    start: std::time::Instant,
     last: Option<std::time::Instant>,
+    /// When the first count was seen, and that count: the rate is measured from there, so a
+    /// resumed run (whose count starts at its checkpoint) estimates from its own pace.
+    origin: Option<(std::time::Instant, u64)>,
 }
 
 impl ThrottledLine {
     pub fn new(every: std::time::Duration) -> Self {
         Self {
             every,
-            start: std::time::Instant::now(),
             last: None,
+            origin: None,
         }
     }
 
@@ -278,16 +280,19 @@ impl ThrottledLine {
     /// `Some(eta)` (the estimated time left, as `1h02m03s`) when a line is due after `done` of
     /// `total` units of work, `None` otherwise.
     pub fn due(&mut self, done: u64, total: u64) -> Option<String> {
-        let now = std::time::Instant::now();
+        self.due_at(std::time::Instant::now(), done, total)
+    }
+
+    fn due_at(&mut self, now: std::time::Instant, done: u64, total: u64) -> Option<String> {
+        let (since, from) = *self.origin.get_or_insert((now, done));
         if self.last.is_some_and(|last| now - last < self.every) {
             return None;
         }
         self.last = Some(now);
-        let elapsed = (now - self.start).as_secs_f64();
-        let left = if done == 0 {
+        let left = if done <= from {
             f64::NAN
         } else {
-            elapsed / done as f64 * total.saturating_sub(done) as f64
+            (now - since).as_secs_f64() / (done - from) as f64 * total.saturating_sub(done) as f64
         };
         Some(duration_text(left))
     }
@@ -320,6 +325,17 @@ mod tests {
         assert!(every_time.due(5, 10).is_some());
         let mut later = ThrottledLine::first_after(std::time::Duration::from_secs(3600));
         assert_eq!(later.due(1, 10), None);
+    }
+
+    #[test]
+    fn the_time_left_is_estimated_from_the_pace_since_the_first_count() {
+        // A run resumed at step 4000 of 8000 that takes 10 s for its next 10 steps has 3990
+        // steps, 3990 s, left: the 4000 steps before it ran in another process.
+        let mut line = ThrottledLine::new(std::time::Duration::ZERO);
+        let t0 = std::time::Instant::now();
+        assert_eq!(line.due_at(t0, 4000, 8000).as_deref(), Some("?"));
+        let t1 = t0 + std::time::Duration::from_secs(10);
+        assert_eq!(line.due_at(t1, 4010, 8000).as_deref(), Some("1h06m30s"));
     }
 
     #[test]
