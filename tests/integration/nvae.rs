@@ -61,6 +61,11 @@ fn nvae_settings_are_checked_by_field_name() {
         parse("method = \"nvae\"\n[nvae]\nrecon_std = 0.05\n[nvae.pid]\nki = 0.0\n").unwrap();
     let nvae = config.nvae.unwrap();
     assert_eq!((nvae.recon_std, nvae.pid.ki, nvae.pid.kp), (0.05, 0.0, 8.0));
+    // The procl preset fixes the transition as its paper's appendix does; the paper preset
+    // learns it.
+    assert_eq!(nvae.fixed_transition, Some([0.0, 0.0, 1.0]));
+    let paper = parse("preset = \"paper\"\nmethod = \"nvae\"\n").unwrap();
+    assert_eq!(paper.nvae.unwrap().fixed_transition, None);
     // The readout is oriented by the action response; the risk is ProCL's.
     assert_eq!(config.orientation_search_every, 50);
     assert_eq!(
@@ -81,6 +86,10 @@ fn nvae_settings_are_checked_by_field_name() {
         (
             "method = \"nvae\"\norientation_criterion = \"risk\"\n",
             "orientation_criterion",
+        ),
+        (
+            "method = \"nvae\"\n[nvae]\nfixed_transition = [0.0, 0.5, 1.0]\n",
+            "nvae.fixed_transition",
         ),
     ] {
         let err = parse(text).unwrap_err().to_string();

@@ -3,7 +3,7 @@
 
 use burn::tensor::Tensor;
 
-use super::{NvaeConfig, NvaeModel};
+use super::{NvaeConfig, NvaeModel, TransitionMatrices};
 use crate::losses::StepValues;
 
 /// `KL(N(mean_q, diag(exp(log_std_q))^2) || N(mean_p, diag(exp(log_std_p))^2))` in closed
@@ -122,7 +122,11 @@ pub fn elbo_loss(
     let x_prev = frames_from(x.clone(), 0);
     let x_now = frames_from(x, 1);
     let v_now = (x_now.clone() - x_prev) / dt;
-    let (prior_mean, _) = model.transition.forward(x_now, v_now, u, dt);
+    let matrices = match config.fixed_transition {
+        Some(abc) => TransitionMatrices::constant(abc, windows * terms, du, &x_now.device()),
+        None => model.transition.matrices(x_now.clone()),
+    };
+    let (prior_mean, _) = matrices.step(x_now, v_now, u, dt);
     let prior_log_std = model.transition.log_std.val().reshape([1, du]);
     let x_next = prior_mean.clone() + prior_log_std.clone().exp() * prior_noise;
     let recon = reconstruction_nll(model.decoder.forward(x_next), targets, config.recon_std);
@@ -293,5 +297,41 @@ mod tests {
         };
         let other = scalar(elbo_loss(&model, &config, pushed, 0.3, dt).kl);
         assert!((other - kl).abs() > 1e-6, "{other} vs {kl}");
+    }
+
+    #[test]
+    fn a_fixed_transition_predicts_x_plus_dt_v_plus_dt_squared_u() {
+        let device = cpu_device();
+        let mut config = super::super::model::tests::tiny();
+        config.fixed_transition = Some([0.0, 0.0, 1.0]);
+        let dt = 0.1;
+        let mean = t2(&[0.0, 0.1, 0.2, 0.4, 0.5, 0.3], 3, 2, &device);
+        let log_std = t2(&[0.5f32.ln(); 6], 3, 2, &device);
+        let u = t2(&[1.0, -2.0], 1, 2, &device);
+        let model = config.init(1, &device).unwrap();
+        let batch = ElboInputs {
+            mean: mean.clone(),
+            log_std: log_std.clone(),
+            targets: Tensor::<4>::zeros([1, 3, 64, 64], &device),
+            u: u.clone(),
+            posterior_noise: mean.zeros_like(),
+            prior_noise: u.zeros_like(),
+            windows: 1,
+        };
+        let terms = elbo_loss(&model, &config, batch, 1.0, dt);
+        // x_1 = (0.2, 0.4), v_1 = (0.2, 0.3) / 0.1 = (2, 3): the prediction is
+        // x_1 + dt v_1 + dt^2 u = (0.2 + 0.2 + 0.01, 0.4 + 0.3 - 0.02) = (0.41, 0.68).
+        let prior_log_std = model.transition.log_std.val().reshape([1, 2]);
+        let want = scalar(gaussian_kl(
+            mean.clone().narrow(0, 2, 1),
+            log_std.clone().narrow(0, 2, 1),
+            t2(&[0.41, 0.68], 1, 2, &device),
+            prior_log_std,
+        ));
+        let got = scalar(terms.kl.clone());
+        assert!(
+            (got - want).abs() < 1e-4 * want.abs().max(1.0),
+            "{got} vs {want}"
+        );
     }
 }

@@ -1,8 +1,8 @@
 //! The NewtonianVAE baseline (Jaques, Burke, Hospedales 2021): a VAE whose latent
-//! position `x` follows a Newtonian transition prior with diagonal, state-dependent `A`, `B < 0`,
-//! `C > 0`, trained by the ELBO over windows of the dataset's episodes, with each frame after
-//! the second reconstructed from the prior's prediction, and controlled by PID on the posterior
-//! mean.
+//! position `x` follows a Newtonian transition prior with diagonal `A`, `B <= 0`, `C > 0`
+//! (state-dependent, or fixed as in its paper's appendix), trained by the ELBO over windows of
+//! the dataset's episodes, with each frame after the second reconstructed from the prior's
+//! prediction, and controlled by PID on the posterior mean.
 
 mod loss;
 mod model;
@@ -49,6 +49,12 @@ pub struct NvaeConfig {
     /// `dt` of the latent dynamics and of `v = (x_t - x_{t-1}) / dt`, seconds (`None`: the
     /// environment's control period).
     pub dt_s: Option<f64>,
+    /// The transition's diagonal matrices: `None` learns `[A, log(-B), log C]` as the MLP's
+    /// outputs (the paper's model); `[a, b, c]` fixes `A = a I`, `B = b I`, `C = c I`. The
+    /// NewtonianVAE paper's appendix fixes `A = 0, B = 0, C = 1`, which makes each action
+    /// accelerate its own latent coordinate at a known rate, whatever the ELBO prefers.
+    #[serde(default)]
+    pub fixed_transition: Option<[f64; 3]>,
     /// Initial transition-prior std `sigma_p` (learned per dimension from there).
     pub init_prior_std: f64,
     /// Std `sigma_x` of the Gaussian decoder, fixed, in pixel units ([-0.5, 0.5] per channel):
@@ -124,6 +130,7 @@ impl NvaeConfig {
             decoder_channels: [32, 16, 8],
             transition_hidden: 16,
             dt_s: None,
+            fixed_transition: None,
             init_prior_std: 0.1,
             recon_std: 0.1,
             kl_standard_weight: 1.0,
@@ -207,6 +214,14 @@ impl NvaeConfig {
                     format!("{value} must be finite and >= 0"),
                 ));
             }
+        }
+        if let Some([a, b, c]) = self.fixed_transition
+            && !([a, b, c].iter().all(|x| x.is_finite()) && b <= 0.0 && c > 0.0)
+        {
+            return Err(Error::config(
+                "nvae.fixed_transition",
+                format!("[{a}, {b}, {c}] must be finite with B <= 0 (damping) and C > 0"),
+            ));
         }
         if self.sequence_len < 3 {
             return Err(Error::config(

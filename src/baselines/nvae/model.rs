@@ -172,8 +172,25 @@ impl NvaeTransition {
         u: Tensor<2>,
         dt: f64,
     ) -> (Tensor<2>, Tensor<2>) {
-        let TransitionMatrices { a, b, c } = self.matrices(x.clone());
-        let accel = a * x.clone() + b * v.clone() + c * u; // [n, du]
+        self.matrices(x.clone()).step(x, v, u, dt)
+    }
+}
+
+impl TransitionMatrices {
+    /// The same diagonals `[A, B, C]` at each of `n` samples of `du` dimensions.
+    pub fn constant([a, b, c]: [f64; 3], n: usize, du: usize, device: &Device) -> Self {
+        let full = |value: f64| Tensor::full([n, du], value, device);
+        Self {
+            a: full(a),
+            b: full(b),
+            c: full(c),
+        }
+    }
+
+    /// One Newtonian step: `v' = v + dt (A x + B v + C u)`, `x' = x + dt v'`; returns
+    /// `(x', v')`.
+    pub fn step(self, x: Tensor<2>, v: Tensor<2>, u: Tensor<2>, dt: f64) -> (Tensor<2>, Tensor<2>) {
+        let accel = self.a * x.clone() + self.b * v.clone() + self.c * u; // [n, du]
         let v_next = v + accel * dt;
         let x_next = x + v_next.clone() * dt;
         (x_next, v_next)
