@@ -256,7 +256,10 @@ mod tests {
         // Term t = 1 predicts frame 2 from frames 0, 1 and u_1; t = 2 frame 3 from 1, 2, u_2.
         let rows = |k: usize| mean.clone().narrow(0, k, 2);
         let v = (rows(1) - rows(0)) / dt;
-        let (prior_mean, _) = model.transition.forward(rows(1), v, u.clone(), dt);
+        let (prior_mean, _) = model
+            .transition
+            .matrices(rows(1))
+            .step(rows(1), v, u.clone(), dt);
         let prior_log_std = model.transition.log_std.val().reshape([1, 2]);
         let kl = scalar(gaussian_kl(
             rows(2),

@@ -162,18 +162,6 @@ impl NvaeTransition {
             c: out.narrow(1, 2 * du, du).exp(),
         }
     }
-
-    /// The prior's mean of `x_{t+1}` and the predicted velocity `v_{t+1}`, from `x_t`, `v_t`,
-    /// `u_t` (`[n, du]` each) over a step of `dt` seconds.
-    pub fn forward(
-        &self,
-        x: Tensor<2>,
-        v: Tensor<2>,
-        u: Tensor<2>,
-        dt: f64,
-    ) -> (Tensor<2>, Tensor<2>) {
-        self.matrices(x.clone()).step(x, v, u, dt)
-    }
 }
 
 impl TransitionMatrices {
@@ -187,8 +175,9 @@ impl TransitionMatrices {
         }
     }
 
-    /// One Newtonian step: `v' = v + dt (A x + B v + C u)`, `x' = x + dt v'`; returns
-    /// `(x', v')`.
+    /// One Newtonian step from `x_t`, `v_t`, `u_t` (`[n, du]` each) over `dt` seconds:
+    /// `v' = v + dt (A x + B v + C u)`, `x' = x + dt v'`; returns the prior's mean `x'` and the
+    /// predicted velocity `v'`.
     pub fn step(self, x: Tensor<2>, v: Tensor<2>, u: Tensor<2>, dt: f64) -> (Tensor<2>, Tensor<2>) {
         let accel = self.a * x.clone() + self.b * v.clone() + self.c * u; // [n, du]
         let v_next = v + accel * dt;
@@ -394,8 +383,11 @@ pub(crate) mod tests {
         //   x'_0 = 1 + 0.1 (0.55) = 1.055.
         //   accel_1 = 0.5 (-2) + -4 (2) + 0.25 (-1) = -9.25;   v'_1 = 2 - 0.925 = 1.075;
         //   x'_1 = -2 + 0.1075 = -1.8925.
+        let x = row([1.0, -2.0]);
         let (x_next, v_next) =
-            transition.forward(row([1.0, -2.0]), row([0.5, 2.0]), row([1.0, -1.0]), 0.1);
+            transition
+                .matrices(x.clone())
+                .step(x, row([0.5, 2.0]), row([1.0, -1.0]), 0.1);
         let (x_next, v_next) = (to_vec(x_next), to_vec(v_next));
         for (got, want) in [
             (v_next[0], 0.55),
