@@ -363,6 +363,19 @@ fn resolve_env_config(env: Option<&str>, file: Option<&Path>) -> anyhow::Result<
 }
 
 /// A share as a percentage with two decimals, `-` when undefined.
+/// The readout check in words: the turn from the action axes and the estimate's spread.
+fn describe_readout(r: &procl::eval::ReadoutCheck) -> String {
+    let turn = match r.turn_deg {
+        Some(turn) => format!("turned {turn:.1} deg from the action axes"),
+        None => "a mirror image of the action axes".into(),
+    };
+    let spread = r.spread_deg.map_or("-".into(), |x| format!("{x:.1} deg"));
+    format!(
+        "{turn} by its {}-step response to the action ({} samples; refits on resampled episodes within {spread})",
+        r.horizon, r.samples
+    )
+}
+
 fn percent(share: Option<f64>) -> String {
     share.map_or("-".into(), |x| format!("{:.2}%", 100.0 * x))
 }
@@ -536,6 +549,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 d.config_to_latent_det
                     .map_or("-".into(), |x| format!("{x:.3}"))
             );
+            if let Some(r) = &d.readout {
+                println!("readout: {}", describe_readout(r));
+            }
         }
         Command::Eval {
             run,

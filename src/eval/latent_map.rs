@@ -48,6 +48,10 @@ pub struct LatentDiagnostics {
     pub near_singular_share: Option<f64>,
     /// Grid points encoded.
     pub points: usize,
+    /// How far `h` is turned from the action axes, from fresh random-control episodes
+    /// ([`super::readout::readout_check`]); `None` where the fit is singular.
+    #[serde(default)]
+    pub readout: Option<super::readout::ReadoutCheck>,
 }
 
 /// The determinant of a square 2x2 or 3x3 matrix (rows), `None` for other shapes.
@@ -413,6 +417,7 @@ pub fn latent_diagnostics(
         locally_unstable_share: local.map(|(unstable, _)| unstable),
         near_singular_share: local.map(|(_, singular)| singular),
         points: configs.len(),
+        readout: super::readout::readout_check(env, encoder, device)?,
     })
 }
 

@@ -4,6 +4,7 @@
 mod latent_map;
 mod plots;
 mod reach;
+mod readout;
 mod run;
 mod track;
 
@@ -19,6 +20,7 @@ pub use reach::{
     EpisodeRecord, MethodSummary, ReachConfig, ReachReport, TrackSummary, evaluate_reach,
     reach_tasks, run_episode, summarise,
 };
+pub use readout::{READOUT_CHECK_HORIZON, ReadoutCheck, readout_check};
 pub use run::{
     Controller, EvalOutputs, LATENT_MAP, RunPolicy, evaluate_oracle, evaluate_run,
     evaluate_run_with, run_policy, write_diagnostics, write_env_diagnostics,

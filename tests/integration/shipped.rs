@@ -53,3 +53,32 @@ fn the_shipped_point_mass_run_reaches_its_goals() {
         report.methods[0]
     );
 }
+
+#[test]
+fn the_readout_check_sees_a_known_turn_of_the_shipped_point_mass_latent() {
+    let (_, model) = RunPaths::new(shipped(EnvKind::PointMass))
+        .load_model(&cpu_device())
+        .unwrap();
+    let env = procl::envs::EnvConfig::from(EnvKind::PointMass);
+    let check = |model: &procl::model::ProclModel| {
+        procl::eval::readout_check(&env, &model.encoder, &cpu_device())
+            .unwrap()
+            .expect("random control spans both actions")
+    };
+    let before = check(&model);
+    assert!(!before.mirrored);
+    let turn = before.turn_deg.unwrap();
+    // The point mass answers its actions alike everywhere: the estimate is tight.
+    assert!(before.spread_deg.unwrap() < 5.0, "{before:?}");
+    // Turn h by 30 degrees more, against the turn found (its sign from the fitted response).
+    let b = &before.response;
+    let sign = if b[2] - b[1] > 0.0 { 1.0f32 } else { -1.0 };
+    let (c, s) = (30f32.to_radians().cos(), sign * 30f32.to_radians().sin());
+    let after = check(&model.reorient_latent(&[c, -s, s, c]));
+    let want = turn + 30.0;
+    let got = after.turn_deg.unwrap();
+    assert!(
+        (got - want).abs() < 1.0,
+        "turned by 30 more: {got}, want {want}"
+    );
+}
