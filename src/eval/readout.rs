@@ -206,45 +206,35 @@ mod tests {
         (actions, latents)
     }
 
-    #[test]
-    fn a_latent_turned_by_30_degrees_reads_a_30_degree_turn() {
+    /// The check at `k = 4` on 40 episodes of 10 steps of [`turned_integrator`].
+    fn check_of(theta_deg: f64, mirror: bool) -> ReadoutCheck {
         let episodes: Vec<_> = (0..40)
-            .map(|e| turned_integrator(30.0, false, 10, e))
+            .map(|e| turned_integrator(theta_deg, mirror, 10, e))
             .collect();
         let (actions, latents) = arrays_of(&episodes, 10);
-        let check = fit_readout(&actions, &latents, 4).unwrap();
+        fit_readout(&actions, &latents, 4).unwrap()
+    }
+
+    #[test]
+    fn a_latent_turned_by_30_degrees_reads_a_30_degree_turn() {
+        let check = check_of(30.0, false);
         assert!(!check.mirrored);
         assert_eq!(check.samples, 40 * 6);
         let turn = check.turn_deg.unwrap();
         assert!((turn - 30.0).abs() < 1e-2, "{turn}");
         assert!(check.spread_deg.unwrap() < 1e-2);
         // B = R M: the first column is (2 cos 30, 2 sin 30) degrees.
-        let b = &check.response;
-        assert!(
-            (b[0] - 2.0 * 30f64.to_radians().cos()).abs() < 1e-3,
-            "{b:?}"
-        );
-        assert!(
-            (b[2] - 2.0 * 30f64.to_radians().sin()).abs() < 1e-3,
-            "{b:?}"
-        );
+        let (b, angle) = (&check.response, 30f64.to_radians());
+        assert!((b[0] - 2.0 * angle.cos()).abs() < 1e-3, "{b:?}");
+        assert!((b[2] - 2.0 * angle.sin()).abs() < 1e-3, "{b:?}");
     }
 
     #[test]
     fn a_mirrored_latent_is_named_as_such_and_an_aligned_one_reads_no_turn() {
-        let mirrored: Vec<_> = (0..40)
-            .map(|e| turned_integrator(0.0, true, 10, e))
-            .collect();
-        let (actions, latents) = arrays_of(&mirrored, 10);
-        let check = fit_readout(&actions, &latents, 4).unwrap();
+        let check = check_of(0.0, true);
         assert!(check.mirrored);
         assert_eq!(check.turn_deg, None);
-        let aligned: Vec<_> = (0..40)
-            .map(|e| turned_integrator(0.0, false, 10, e))
-            .collect();
-        let (actions, latents) = arrays_of(&aligned, 10);
-        let check = fit_readout(&actions, &latents, 4).unwrap();
-        assert!(check.turn_deg.unwrap() < 1e-2);
+        assert!(check_of(0.0, false).turn_deg.unwrap() < 1e-2);
     }
 
     #[test]
