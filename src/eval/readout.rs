@@ -72,10 +72,7 @@ pub fn readout_check(
 
 /// `h` of every frame, episode-major `[episodes (steps + 1), du]`.
 fn encode_episodes(data: &Dataset, encoder: &dyn LatentEncoder, device: &Device) -> Vec<f32> {
-    let frames: Vec<&[u8]> = (0..data.episodes())
-        .flat_map(|e| (0..=data.steps()).map(move |t| (e, t)))
-        .map(|(e, t)| data.frame(e, t))
-        .collect();
+    let frames: Vec<&[u8]> = data.every_frame().collect();
     frames
         .chunks(256)
         .flat_map(|chunk| to_vec(encoder.encode(frames_to_tensor(chunk.iter().copied(), device))))
