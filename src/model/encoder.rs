@@ -504,7 +504,7 @@ impl Encoder {
         frames: &[&[u8]],
         device: &Device,
     ) -> (Tensor<2>, Option<TrunkTape>) {
-        if *device != super::cpu_device() || !device.is_autodiff() {
+        if !super::trains_on_host(device) {
             let input = super::frames_to_tensor(frames.iter().copied(), device);
             return (self.forward(input), None);
         }

@@ -17,7 +17,8 @@ pub(crate) use encoder::POLAR_CENTRE;
 pub use encoder::{Encoder, EncoderConfig, EncoderHead};
 pub use host_encoder::HostEncoder;
 pub use init::reinit_params;
-pub use trunk::TrunkTape;
+pub(crate) use trunk::{ConvGradient, Scratch, TapeLayer, with_scratch};
+pub use trunk::{HostBackward, TrunkTape};
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -27,6 +28,12 @@ use crate::envs::{FRAME_BYTES, FRAME_PX};
 /// The CPU device every test and CI run uses (burn-flex, deterministic, no native libraries).
 pub fn cpu_device() -> Device {
     Device::flex()
+}
+
+/// Whether training on `device` runs the convolutions on the host, outside burn's graph
+/// ([`TrunkTape`]): on the CPU with autodiff.
+pub(crate) fn trains_on_host(device: &Device) -> bool {
+    *device == cpu_device() && device.is_autodiff()
 }
 
 /// Picks a device by name: `cpu`, or `cuda` when built with the `cuda` feature.

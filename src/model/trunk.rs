@@ -70,7 +70,7 @@ struct SoftArgmaxTape {
     grids: Vec<Vec<f32>>,
 }
 
-struct TapeLayer {
+pub(crate) struct TapeLayer {
     conv: HostConv,
     relu: bool,
     /// Side of the layer's input.
@@ -173,13 +173,47 @@ impl SoftArgmaxTape {
 }
 
 impl TapeLayer {
-    fn out_side(&self) -> usize {
+    /// `conv` (and a ReLU after it when `relu`) on inputs of side `side`.
+    pub(crate) fn new(conv: &Conv2d, relu: bool, side: usize) -> Self {
+        Self {
+            side,
+            relu,
+            weight: conv.weight.val(),
+            bias: conv.bias.as_ref().map(|b| b.val()),
+            conv: HostConv::from_conv(conv),
+        }
+    }
+
+    pub(crate) fn out_side(&self) -> usize {
         self.conv.out_side(self.side)
+    }
+
+    /// Whether a ReLU follows the convolution.
+    pub(crate) fn relu(&self) -> bool {
+        self.relu
+    }
+
+    /// Zero gradients in the host layout: `[out, width]` for the weight, `[out]` for the bias.
+    pub(crate) fn zero_gradients(&self) -> (Vec<f32>, Vec<f32>) {
+        (
+            vec![0.0; self.conv.weight.len()],
+            vec![0.0; self.conv.bias.len()],
+        )
+    }
+
+    /// The parameters' gradients from their sums in the host layout (see [`Self::backward`]).
+    pub(crate) fn gradient(&self, weight: &[f32], bias: Vec<f32>) -> ConvGradient {
+        ConvGradient {
+            weight: self.weight.clone(),
+            bias: self.bias.clone(),
+            weight_grad: self.conv.weight_to_burn_layout(weight),
+            bias_grad: bias,
+        }
     }
 
     /// The layer's output for `frames` inputs `[frames, side^2, in]`.
     #[inline(always)]
-    fn forward(&self, input: &[f32], frames: usize, scratch: &mut Scratch) -> Vec<f32> {
+    pub(crate) fn forward(&self, input: &[f32], frames: usize, scratch: &mut Scratch) -> Vec<f32> {
         let [cin, cout] = self.conv.channels;
         let rows = frames * self.out_side().pow(2);
         let mut out = vec![0.0; rows * cout];
@@ -241,7 +275,7 @@ impl TapeLayer {
     /// its ReLU: the weight gradient (`[out, width]`, the host layout), the bias gradient and,
     /// when `input_grad`, the gradient of the input `[frames, side^2, in]`.
     #[inline(always)]
-    fn backward(
+    pub(crate) fn backward(
         &self,
         input: &[f32],
         grad_out: &[f32],
@@ -314,9 +348,65 @@ impl TapeLayer {
     }
 }
 
+/// A convolution's parameter gradients computed on the host, to be written into burn's
+/// [`Gradients`] after its `backward`.
+#[derive(Debug, Clone)]
+pub(crate) struct ConvGradient {
+    /// The parameters, to address their gradients.
+    weight: Tensor<4>,
+    bias: Option<Tensor<1>>,
+    /// burn's layout `[out, in, kh, kw]`.
+    weight_grad: Vec<f32>,
+    bias_grad: Vec<f32>,
+}
+
+impl ConvGradient {
+    pub(crate) fn write(self, grads: &mut Gradients) {
+        let device = self.weight.device().without_autodiff();
+        let dims = self.weight.dims();
+        let weight = Tensor::from_data(TensorData::new(self.weight_grad, dims), &device);
+        self.weight.grad_replace(grads, weight);
+        if let Some(param) = &self.bias {
+            let len = self.bias_grad.len();
+            let bias = Tensor::from_data(TensorData::new(self.bias_grad, [len]), &device);
+            param.grad_replace(grads, bias);
+        }
+    }
+}
+
+/// What a training step computed outside burn's graph and still owes burn's [`Gradients`]
+/// after `backward`: the encoder trunk's tape, and gradients the host already has (the
+/// NewtonianVAE decoder's, whose loss is scored on the host).
+#[derive(Default)]
+pub struct HostBackward {
+    pub(crate) trunk: Option<TrunkTape>,
+    pub(crate) convs: Vec<ConvGradient>,
+}
+
+impl HostBackward {
+    /// Completes `grads`: writes the host's gradients and carries the trunk's back.
+    pub fn backward(self, grads: &mut Gradients) {
+        for conv in self.convs {
+            conv.write(grads);
+        }
+        if let Some(trunk) = self.trunk {
+            trunk.backward(grads);
+        }
+    }
+}
+
+impl From<Option<TrunkTape>> for HostBackward {
+    fn from(trunk: Option<TrunkTape>) -> Self {
+        Self {
+            trunk,
+            convs: Vec::new(),
+        }
+    }
+}
+
 /// Buffers a thread keeps between chunks.
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     /// im2col matrices by layer geometry: their padding entries stay 0 between uses, so they
     /// are never zeroed again.
     columns: Vec<([usize; 5], Vec<f32>)>,
@@ -326,6 +416,12 @@ struct Scratch {
 
 thread_local! {
     static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
+/// Runs `f` with this thread's [`Scratch`]. Call the vector-unit dispatch inside `f`, with the
+/// scratch as an argument (see [`ForwardChunk`]).
+pub(crate) fn with_scratch<R>(f: impl FnOnce(&mut Scratch) -> R) -> R {
+    SCRATCH.with_borrow_mut(f)
 }
 
 /// Per chunk: per layer (weight, bias) gradients, and the gradient of `log beta`.
@@ -479,14 +575,7 @@ impl TrunkTape {
             .layers
             .iter()
             .map(|layer| {
-                let conv = HostConv::from_conv(layer.conv);
-                let tape = TapeLayer {
-                    side,
-                    relu: layer.relu,
-                    weight: layer.conv.weight.val(),
-                    bias: layer.conv.bias.as_ref().map(|b| b.val()),
-                    conv,
-                };
+                let tape = TapeLayer::new(layer.conv, layer.relu, side);
                 side = tape.out_side();
                 tape
             })
@@ -587,25 +676,13 @@ impl TrunkTape {
             })
             .collect();
         for (l, layer) in self.layers.iter().enumerate() {
-            let mut weight = vec![0.0f32; layer.conv.weight.len()];
-            let mut bias = vec![0.0f32; layer.conv.bias.len()];
+            let (mut weight, mut bias) = layer.zero_gradients();
             for (partial, _) in &partials {
                 let (w, b) = &partial[l];
                 weight.iter_mut().zip(w).for_each(|(sum, v)| *sum += v);
                 bias.iter_mut().zip(b).for_each(|(sum, v)| *sum += v);
             }
-            let device = layer.weight.device().without_autodiff();
-            let dims = layer.weight.dims();
-            let weight = layer.conv.weight_to_burn_layout(&weight);
-            let weight = Tensor::from_data(TensorData::new(weight, dims), &device);
-            layer.weight.grad_replace(grads, weight);
-            if let Some(param) = &layer.bias {
-                let len = bias.len();
-                param.grad_replace(
-                    grads,
-                    Tensor::from_data(TensorData::new(bias, [len]), &device),
-                );
-            }
+            layer.gradient(&weight, bias).write(grads);
         }
         if let Some(stage) = &self.soft_argmax {
             let k = stage.sharpness.len();

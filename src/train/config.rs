@@ -70,8 +70,8 @@ pub enum Preset {
 }
 
 /// The NewtonianVAE's default batch, in windows of `nvae.sequence_len` frames: 16 windows of
-/// 10 encode 160 frames and decode 128, and take about 0.3 s a step on 2 cores, about what a
-/// ProCL step of 128 samples takes.
+/// 10 encode 160 frames and decode 128, a step no dearer than a ProCL step of 128 samples
+/// (README, "Benchmarks").
 const NVAE_BATCH_SIZE: usize = 16;
 
 /// The NewtonianVAE's own budget, ended earlier by its stopping rule (`nvae.plateau_patience`):

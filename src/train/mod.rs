@@ -29,7 +29,7 @@ use burn::tensor::{Device, Tensor};
 use crate::data::{Dataset, PixelSpread};
 use crate::error::{Error, Result};
 use crate::losses::{LOSS_NAMES, StepValues, procl_loss};
-use crate::model::{ProclModel, TrunkTape};
+use crate::model::{HostBackward, ProclModel};
 use crate::train::checkpoint::{Adam, CheckpointMeta, load_checkpoint, save_checkpoint};
 use crate::train::orientation::{LatentOrienter, WindowRule};
 use batches::scale_frames;
@@ -53,13 +53,9 @@ pub(crate) trait Objective {
     fn prepare(&mut self, model: Self::Model) -> Self::Model {
         model
     }
-    /// The loss to minimise at step `step` (0-based), its logged values and the encoder
-    /// trunk's tape where the trunk ran outside burn's graph.
-    fn loss(
-        &mut self,
-        model: &Self::Model,
-        step: u64,
-    ) -> (Tensor<1>, StepValues, Option<TrunkTape>);
+    /// The loss to minimise at step `step` (0-based), its logged values and what the host
+    /// computed outside burn's graph (the encoder trunk's tape, host gradients).
+    fn loss(&mut self, model: &Self::Model, step: u64) -> (Tensor<1>, StepValues, HostBackward);
     /// Runs after the optimiser update of step `step` (0-based).
     fn after_update(&mut self, model: Self::Model, _step: u64) -> Result<Self::Model> {
         Ok(model)
@@ -102,18 +98,14 @@ impl Objective for ProclObjective<'_> {
         model
     }
 
-    fn loss(
-        &mut self,
-        model: &ProclModel,
-        step: u64,
-    ) -> (Tensor<1>, StepValues, Option<TrunkTape>) {
+    fn loss(&mut self, model: &ProclModel, step: u64) -> (Tensor<1>, StepValues, HostBackward) {
         let dt = self.data.meta.control_dt_s;
         let (inputs, trunk) = loss_inputs(model, self.data, self.config, step, self.device);
         if let Some(search) = self.search.as_mut() {
             search.observe(&inputs, &self.config.loss, dt);
         }
         let terms = procl_loss(&self.config.loss, &model.dynamics, inputs, dt);
-        (terms.total.clone(), terms.values().into(), trunk)
+        (terms.total.clone(), terms.values().into(), trunk.into())
     }
 
     fn after_update(&mut self, model: ProclModel, step: u64) -> Result<ProclModel> {
@@ -327,7 +319,7 @@ fn run_training<O: Objective>(
     let clock = Instant::now();
     let mut last = None;
     for step in start..config.steps {
-        let (total, values, trunk) = objective.loss(&model, step);
+        let (total, values, host) = objective.loss(&model, step);
         if !values.is_finite() {
             return Err(Error::Diverged(format!(
                 "non-finite loss at step {} ({values}); {}",
@@ -336,9 +328,7 @@ fn run_training<O: Objective>(
             )));
         }
         let mut grads = total.backward();
-        if let Some(trunk) = trunk {
-            trunk.backward(&mut grads);
-        }
+        host.backward(&mut grads);
         model = adam.step(config.learning_rate, model, &grads);
         model = objective.after_update(model, step)?;
         let row: Vec<String> = values.values.iter().map(|x| format!("{x:.6}")).collect();

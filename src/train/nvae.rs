@@ -15,12 +15,12 @@ use super::{
     truncate_metrics,
 };
 use crate::baselines::nvae::{
-    ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, VALIDATION_NAMES, elbo_loss,
+    ELBO_NAMES, ElboInputs, NvaeConfig, NvaeModel, Targets, VALIDATION_NAMES, elbo_loss,
 };
 use crate::data::{Dataset, PixelSpread};
 use crate::error::{Error, Result};
 use crate::losses::StepValues;
-use crate::model::{TrunkTape, frames_to_tensor, to_vec};
+use crate::model::{HostBackward, TrunkTape, frames_to_tensor, to_vec, trains_on_host};
 
 /// Validation windows at most: enough for a stable mean, few enough to cost a few steps.
 const VALIDATION_WINDOWS: usize = 64;
@@ -88,7 +88,8 @@ fn sample_windows(
 struct WindowBatch<'a> {
     /// Every frame of every window, window-major.
     frames: Vec<&'a [u8]>,
-    targets: Tensor<4>,
+    /// Frames `2..len` of every window: those the ELBO scores.
+    targets: Vec<&'a [u8]>,
     u: Tensor<2>,
     posterior_noise: Tensor<2>,
     prior_noise: Tensor<2>,
@@ -113,7 +114,6 @@ impl<'a> WindowBatch<'a> {
             .flat_map(|window| &window[2..])
             .copied()
             .collect();
-        let targets = frames_to_tensor(targets.into_iter(), device);
         let u: Vec<f32> = windows
             .iter()
             .flat_map(|&(e, s)| {
@@ -132,13 +132,24 @@ impl<'a> WindowBatch<'a> {
     }
 
     /// Encodes the frames and returns the ELBO's inputs with the trunk's tape (the batch's
-    /// tensors are shared, not copied).
-    fn inputs(&self, model: &NvaeModel, device: &Device) -> (ElboInputs, Option<TrunkTape>) {
+    /// tensors are shared, not copied). With `decode_on_host` the decoder's convolutions run
+    /// on the host ([`Targets::Frames`]).
+    fn inputs(
+        &self,
+        model: &NvaeModel,
+        device: &Device,
+        decode_on_host: bool,
+    ) -> (ElboInputs<'_>, Option<TrunkTape>) {
         let (mean, log_std, tape) = model.encoder.posterior_training(&self.frames, device);
+        let targets = if decode_on_host {
+            Targets::Frames(&self.targets)
+        } else {
+            Targets::Pixels(frames_to_tensor(self.targets.iter().copied(), device))
+        };
         let inputs = ElboInputs {
             mean,
             log_std,
-            targets: self.targets.clone(),
+            targets,
             u: self.u.clone(),
             posterior_noise: self.posterior_noise.clone(),
             prior_noise: self.prior_noise.clone(),
@@ -309,7 +320,7 @@ impl Objective for NvaeObjective<'_> {
         Ok(())
     }
 
-    fn loss(&mut self, model: &NvaeModel, step: u64) -> (Tensor<1>, StepValues, Option<TrunkTape>) {
+    fn loss(&mut self, model: &NvaeModel, step: u64) -> (Tensor<1>, StepValues, HostBackward) {
         let mut rng = step_rng(self.config.seed, step);
         let len = self.nvae.sequence_len;
         let windows = sample_windows(
@@ -320,7 +331,7 @@ impl Objective for NvaeObjective<'_> {
             self.config.batch_size,
         );
         let batch = WindowBatch::new(self.data, &windows, len, &mut rng, self.device);
-        let (inputs, tape) = batch.inputs(model, self.device);
+        let (inputs, tape) = batch.inputs(model, self.device, trains_on_host(self.device));
         if let Some(LatentOrienter::ActionResponse(response)) = self.search.as_mut() {
             let mean = to_vec(inputs.mean.clone().detach());
             let du = inputs.u.dims()[1];
@@ -334,7 +345,11 @@ impl Objective for NvaeObjective<'_> {
             self.nvae.kl_weight(step),
             self.dt(),
         );
-        (terms.total.clone(), terms.values(), tape)
+        (
+            terms.total.clone(),
+            terms.values(),
+            terms.host_backward(tape),
+        )
     }
 
     fn after_update(&mut self, mut model: NvaeModel, step: u64) -> Result<NvaeModel> {
@@ -354,7 +369,8 @@ impl Objective for NvaeObjective<'_> {
         if !done.is_multiple_of(self.nvae.validate_every) {
             return Ok(false);
         }
-        let (inputs, _) = batch.inputs(model, self.device);
+        // Scored in burn's graph: validation needs no gradients.
+        let (inputs, _) = batch.inputs(model, self.device, false);
         let values = elbo_loss(model, self.nvae, inputs, 1.0, self.dt()).values();
         let path = self.run.validation();
         let row: Vec<String> = values.values[..VALIDATION_NAMES.len()]

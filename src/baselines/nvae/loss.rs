@@ -5,6 +5,7 @@ use burn::tensor::Tensor;
 
 use super::{NvaeConfig, NvaeModel, TransitionMatrices};
 use crate::losses::StepValues;
+use crate::model::{ConvGradient, HostBackward, TrunkTape};
 
 /// `KL(N(mean_q, diag(exp(log_std_q))^2) || N(mean_p, diag(exp(log_std_p))^2))` in closed
 /// form, summed over dimensions and averaged over rows: `[n, d]` each (the prior's may be
@@ -33,16 +34,29 @@ pub fn reconstruction_nll(mean: Tensor<4>, frames: Tensor<4>, recon_std: f64) ->
     (squared.sum_dim(1).mean() / (2.0 * recon_std * recon_std)).reshape([1])
 }
 
+/// The frames the prior's predictions are scored on.
+// One is built a step and moved once: boxing the tensor would only add an allocation.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug, Clone)]
+pub enum Targets<'a> {
+    /// As the network sees them, `[m, 3, 64, 64]` ([`crate::model::frames_to_tensor`]): the
+    /// decoder runs in burn's graph.
+    Pixels(Tensor<4>),
+    /// RGB u8 frames: the decoder's convolutions and their score run on the host (training on
+    /// the CPU), their parameter gradients returned in [`ElboTerms::decoder_gradients`].
+    Frames(&'a [&'a [u8]]),
+}
+
 /// One batch of training windows as the ELBO sees them: `w` windows of `len` consecutive
 /// frames of one episode each, window-major.
 #[derive(Debug, Clone)]
-pub struct ElboInputs {
+pub struct ElboInputs<'a> {
     /// The posterior `q(x | i)` of every frame: mean and log std, `[w len, du]` each.
     pub mean: Tensor<2>,
     pub log_std: Tensor<2>,
     /// The frames the prior's predictions are scored on, frames `2..len` of every window:
-    /// `[w (len - 2), 3, 64, 64]`.
-    pub targets: Tensor<4>,
+    /// `w (len - 2)` of them.
+    pub targets: Targets<'a>,
     /// `u_t` for `t = 1..len - 1` of every window (`u_t` moves frame `t` to `t + 1`):
     /// `[w (len - 2), du]`.
     pub u: Tensor<2>,
@@ -69,6 +83,9 @@ pub struct ElboTerms {
     pub total: Tensor<1>,
     /// The transition KL's weight this step.
     pub beta: f64,
+    /// The decoder's convolution gradients when it ran on the host ([`Targets::Frames`]):
+    /// burn's `backward` of `total` leaves them out.
+    pub(crate) decoder_gradients: Vec<ConvGradient>,
 }
 
 /// Names of the logged NVAE terms (metrics.csv columns), in [`ElboTerms::values`] order.
@@ -78,6 +95,15 @@ pub const ELBO_NAMES: [&str; 5] = ["total", "recon", "kl", "kl_std", "beta"];
 pub const VALIDATION_NAMES: [&str; 4] = ["total", "recon", "kl", "kl_std"];
 
 impl ElboTerms {
+    /// What the host owes burn's gradients after `total.backward()`: the decoder's
+    /// convolution gradients, and the encoder trunk's tape `trunk` if it ran on the host.
+    pub fn host_backward(&self, trunk: Option<TrunkTape>) -> HostBackward {
+        HostBackward {
+            trunk,
+            convs: self.decoder_gradients.clone(),
+        }
+    }
+
     /// Reads every term back (one device sync).
     pub fn values(&self) -> StepValues {
         let mut values =
@@ -129,7 +155,20 @@ pub fn elbo_loss(
     let (prior_mean, _) = matrices.step(x_now, v_now, u, dt);
     let prior_log_std = model.transition.log_std.val().reshape([1, du]);
     let x_next = prior_mean.clone() + prior_log_std.clone().exp() * prior_noise;
-    let recon = reconstruction_nll(model.decoder.forward(x_next), targets, config.recon_std);
+    let (recon, decoder_gradients) = match targets {
+        Targets::Pixels(targets) => {
+            let decoded = model.decoder.forward(x_next);
+            (
+                reconstruction_nll(decoded, targets, config.recon_std),
+                Vec::new(),
+            )
+        }
+        Targets::Frames(frames) => {
+            model
+                .decoder
+                .reconstruction_on_host(x_next, frames, config.recon_std)
+        }
+    };
     let kl = gaussian_kl(
         frames_from(mean.clone().reshape([windows, len, du]), 2),
         frames_from(log_std.clone().reshape([windows, len, du]), 2),
@@ -149,6 +188,7 @@ pub fn elbo_loss(
         kl_standard,
         total,
         beta,
+        decoder_gradients,
     }
 }
 
@@ -246,7 +286,7 @@ mod tests {
         let inputs = ElboInputs {
             mean: mean.clone(),
             log_std: log_std.clone(),
-            targets: targets.clone(),
+            targets: Targets::Pixels(targets.clone()),
             u: u.clone(),
             posterior_noise: mean.zeros_like(),
             prior_noise: u.zeros_like(),
@@ -315,7 +355,7 @@ mod tests {
         let batch = ElboInputs {
             mean: mean.clone(),
             log_std: log_std.clone(),
-            targets: Tensor::<4>::zeros([1, 3, 64, 64], &device),
+            targets: Targets::Pixels(Tensor::<4>::zeros([1, 3, 64, 64], &device)),
             u: u.clone(),
             posterior_noise: mean.zeros_like(),
             prior_noise: u.zeros_like(),

@@ -4,11 +4,13 @@
 //! the dataset's episodes, with each frame after the second reconstructed from the prior's
 //! prediction, and controlled by PID on the posterior mean.
 
+mod host_decoder;
 mod loss;
 mod model;
 
 pub use loss::{
-    ELBO_NAMES, ElboInputs, ElboTerms, VALIDATION_NAMES, elbo_loss, gaussian_kl, reconstruction_nll,
+    ELBO_NAMES, ElboInputs, ElboTerms, Targets, VALIDATION_NAMES, elbo_loss, gaussian_kl,
+    reconstruction_nll,
 };
 pub use model::{Decoder, GaussianEncoder, NvaeModel, NvaeTransition, TransitionMatrices};
 

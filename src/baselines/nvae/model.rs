@@ -97,25 +97,31 @@ impl LatentEncoder for GaussianEncoder {
 pub struct Decoder {
     fc1: Linear,
     fc2: Linear,
-    conv1: Conv2d,
-    conv2: Conv2d,
-    conv3: Conv2d,
+    pub(super) conv1: Conv2d,
+    pub(super) conv2: Conv2d,
+    pub(super) conv3: Conv2d,
 }
 
 /// Side of the decoder's first feature map.
-const DECODER_BASE_PX: usize = 8;
+pub(super) const DECODER_BASE_PX: usize = 8;
 
 impl Decoder {
     /// `x [n, du]` -> `[n, 3, 64, 64]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<4> {
         let n = x.dims()[0];
         let c0 = self.conv1.weight.val().dims()[1];
-        let x = relu(self.fc1.forward(x)); // [n, hidden]
-        let x = relu(self.fc2.forward(x)); // [n, c0 * 8 * 8]
-        let x = x.reshape([n, c0, DECODER_BASE_PX, DECODER_BASE_PX]); // [n, c0, 8, 8]
+        let x = self
+            .base_maps(x)
+            .reshape([n, c0, DECODER_BASE_PX, DECODER_BASE_PX]); // [n, c0, 8, 8]
         let x = relu(self.conv1.forward(upsample2(x))); // [n, c1, 16, 16]
         let x = relu(self.conv2.forward(upsample2(x))); // [n, c2, 32, 32]
         self.conv3.forward(upsample2(x)) // [n, 3, 64, 64]
+    }
+
+    /// The dense layers: `x [n, du]` -> the 8x8 feature maps, flattened `[n, c0 * 8 * 8]`.
+    pub(super) fn base_maps(&self, x: Tensor<2>) -> Tensor<2> {
+        let x = relu(self.fc1.forward(x)); // [n, hidden]
+        relu(self.fc2.forward(x))
     }
 }
 
