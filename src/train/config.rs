@@ -74,10 +74,11 @@ pub enum Preset {
 /// (README, "Benchmarks").
 const NVAE_BATCH_SIZE: usize = 16;
 
-/// The NewtonianVAE's own budget, ended earlier by its stopping rule (`nvae.plateau_patience`):
-/// its latent orders between steps 1600 and 2400 on point mass and Fetch, and its validation
-/// ELBO still falls at 4000 (docs/design.md, Baselines).
-const NVAE_STEPS: u64 = 4000;
+/// A bound on the NewtonianVAE's steps, not its budget: its stopping rule
+/// (`nvae.plateau_patience`) ends the run when the validation ELBO stops improving, which on
+/// the reacher takes about three times the 4000 steps after which the ELBO still falls
+/// (docs/design.md, Baselines).
+const NVAE_STEPS: u64 = 20_000;
 
 /// Everything a training run needs; written to the run folder as `config.json`.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
