@@ -10,11 +10,23 @@ use burn::tensor::{Tensor, TensorData};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use procl::Adam;
 use procl::baselines::nvae::{ElboInputs, Targets, elbo_loss};
-use procl::data::{CollectConfig, collect};
+use procl::data::{CollectConfig, Dataset, collect};
 use procl::envs::EnvKind;
 use procl::losses::procl_loss;
 use procl::model::{cpu_device, frames_to_tensor};
-use procl::train::{Method, Preset, TrainConfig, loss_inputs};
+use procl::train::{Method, Preset, TrainConfig, WindowFrames, loss_inputs, window_frames};
+
+/// 2000 transitions of `env`'s own episodes (the reacher's 10 steps hold the sign term's reach).
+fn dataset(env: EnvKind) -> Dataset {
+    collect(
+        &CollectConfig {
+            transitions: 2000,
+            ..CollectConfig::new(env, 0)
+        },
+        |_| {},
+    )
+    .expect("dataset")
+}
 
 fn train_step(c: &mut Criterion) {
     // As the binary does at start (src/allocator.rs), so the figure is the one users get.
@@ -27,15 +39,7 @@ fn train_step(c: &mut Criterion) {
         (EnvKind::Reacher, Preset::Procl),
     ];
     for (env, preset) in cases {
-        // Each environment's own episodes (the reacher's 10 steps hold the sign term's reach).
-        let data = collect(
-            &CollectConfig {
-                transitions: 2000,
-                ..CollectConfig::new(env, 0)
-            },
-            |_| {},
-        )
-        .expect("dataset");
+        let data = dataset(env);
         let config = TrainConfig::preset(preset, Method::Procl, env);
         let device = cpu_device().autodiff();
         let mut model = Some(config.model.init(0, &device).expect("model"));
@@ -70,14 +74,7 @@ fn nvae_train_step(c: &mut Criterion) {
     let mut group = c.benchmark_group("train_step");
     group.sample_size(10);
     let env = EnvKind::Reacher;
-    let data = collect(
-        &CollectConfig {
-            transitions: 2000,
-            ..CollectConfig::new(env, 0)
-        },
-        |_| {},
-    )
-    .expect("dataset");
+    let data = dataset(env);
     let config = TrainConfig::preset(Preset::Procl, Method::Nvae, env);
     let nvae = config
         .nvae
@@ -96,23 +93,10 @@ fn nvae_train_step(c: &mut Criterion) {
             b.iter(|| {
                 let current = model.take().expect("model");
                 // A window from the start of each of `windows` episodes, other ones each step.
-                let episodes: Vec<usize> = (0..windows)
-                    .map(|k| (step * windows + k) % data.episodes())
+                let starts: Vec<(usize, usize)> = (0..windows)
+                    .map(|k| ((step * windows + k) % data.episodes(), 0))
                     .collect();
-                let frames: Vec<&[u8]> = episodes
-                    .iter()
-                    .flat_map(|&e| (0..len).map(move |t| data.frame(e, t)))
-                    .collect();
-                let targets: Vec<&[u8]> = frames
-                    .chunks_exact(len)
-                    .flat_map(|window| &window[2..])
-                    .copied()
-                    .collect();
-                let u: Vec<f32> = episodes
-                    .iter()
-                    .flat_map(|&e| (1..len - 1).flat_map(move |t| (0..du).map(move |i| (e, t, i))))
-                    .map(|(e, t, i)| data.actions[[e, t, i]])
-                    .collect();
+                let WindowFrames { frames, targets, u } = window_frames(data, &starts, len);
                 let u = Tensor::from_data(TensorData::new(u, [targets.len(), du]), &device);
                 let (mean, log_std, tape) = current.encoder.posterior_training(&frames, &device);
                 let inputs = ElboInputs {

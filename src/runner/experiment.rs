@@ -625,7 +625,8 @@ pub struct BudgetRow {
 pub struct EnvResults {
     pub env: EnvKind,
     pub protocol: ReachConfig,
-    /// Every method trained on its own preset budget, with the planners on its latent.
+    /// Every method trained on its own terms (its preset's steps; the NewtonianVAE until its
+    /// stopping rule ends it), with the planners on its latent.
     pub rows: Vec<Row>,
     /// The equal-budget comparison's wall-clock training seconds (ProCL's own).
     pub equal_budget_seconds: Option<f64>,
@@ -917,7 +918,7 @@ fn optional(value: Option<f64>, digits: usize) -> String {
     value.map_or("-".into(), |v| format!("{v:.digits$}"))
 }
 
-/// The results tables as Markdown (README): every method trained on its own preset budget
+/// The results tables as Markdown (README): every method trained on its own terms
 /// (env, method, success, final distance, control time, training), then every method at the
 /// equal training budget.
 pub fn markdown_table(summary: &Summary) -> String {
@@ -1029,7 +1030,7 @@ fn report_html(config: &ExperimentConfig, summary: &Summary) -> String {
         }
     }
     body.push_str(&format!(
-        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset for its own preset's steps (the NewtonianVAE's stopping rule can end it sooner); the learning curves below show where each levels off; CEM and iLQR plan through the ProCL and PC3 runs' learned dynamics, on the same latents as their PD.</p>\
+        "<h2>Goal reaching</h2><p>Per environment: {} episodes from random starts to random goals (the goal given only as an image); success = final distance under the environment's threshold (point mass and Fetch: metres, reacher: joint-space radians). Every method is trained on the same dataset on its own terms: ProCL and PC3 for their presets' steps, the NewtonianVAE until its stopping rule on the validation ELBO ends it; the learning curves below show where each levels off; CEM and iLQR plan through the ProCL and PC3 runs' learned dynamics, on the same latents as their PD.</p>\
 <table><tr><th>environment</th><th>method</th><th>success</th><th>final distance</th><th>control step p50 / p99 (&micro;s)</th><th>step time / PD or PID</th><th>linear R&sup2; of q from h</th><th>5-NN R&sup2;</th><th>pairs PD pushes away (%)</th><th>locally unstable cells (%)</th><th>training steps</th><th>training (s)</th></tr>\n{table}</table>\n",
         config.eval_episodes
     ));
@@ -1169,8 +1170,9 @@ pub fn update_readme(
     std::fs::create_dir_all(&figure_dir).map_err(|e| Error::io(&figure_dir, e))?;
     let mut section = format!(
         "{README_BEGIN}\n<!-- written by `procl experiment paper --readme README.md`; edits here are overwritten -->\n\n\
-{} evaluation episodes per method, seed {}. The first table trains every method for its own \
-preset's steps (the NewtonianVAE's stopping rule can end it sooner); the second evaluates every \
+{} evaluation episodes per method, seed {}. The first table trains every method on its own \
+terms (ProCL and PC3 for their presets' steps, the NewtonianVAE until its stopping rule ends it); \
+the second evaluates every \
 method's latest weights trained within the wall-clock time ProCL's run took, as the runs measured \
 it while training. Stages took {:.0} s in all on the machine that ran them.\n\n{}\n",
         config.eval_episodes,

@@ -15,7 +15,7 @@ pub use config::{
     ConfigBase, Method, Preset, Recipe, TrainConfig, config_from_table, config_from_toml,
     read_config_table, training_budget,
 };
-pub use nvae::{EpisodeSplit, PlateauRule};
+pub use nvae::{EpisodeSplit, PlateauRule, WindowFrames, window_frames};
 pub use run_folder::{DataRecord, RunPaths, TrainedModel};
 
 use std::io::Write;

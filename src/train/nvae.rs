@@ -84,6 +84,40 @@ fn sample_windows(
         .collect()
 }
 
+/// What the ELBO reads of a batch of windows of consecutive frames.
+pub struct WindowFrames<'a> {
+    /// Every frame of every window, window-major.
+    pub frames: Vec<&'a [u8]>,
+    /// Frames `2..len` of every window: those the ELBO scores.
+    pub targets: Vec<&'a [u8]>,
+    /// `u_t` for `t = 1..len - 1` of every window, row-major `[windows (len - 2), du]`.
+    pub u: Vec<f32>,
+}
+
+/// The frames and actions of `windows` `(episode, first frame)` of `len` frames each.
+pub fn window_frames<'a>(
+    data: &'a Dataset,
+    windows: &[(usize, usize)],
+    len: usize,
+) -> WindowFrames<'a> {
+    let du = data.action_dim();
+    let frames: Vec<&[u8]> = windows
+        .iter()
+        .flat_map(|&(e, s)| (s..s + len).map(move |t| data.frame(e, t)))
+        .collect();
+    let targets: Vec<&[u8]> = frames
+        .chunks_exact(len)
+        .flat_map(|window| &window[2..])
+        .copied()
+        .collect();
+    let u: Vec<f32> = windows
+        .iter()
+        .flat_map(|&(e, s)| (s + 1..s + len - 1).flat_map(move |t| (0..du).map(move |i| (e, t, i))))
+        .map(|(e, t, i)| data.actions[[e, t, i]])
+        .collect();
+    WindowFrames { frames, targets, u }
+}
+
 /// The raw frames and tensors of a batch of windows; the posterior is the model's part.
 struct WindowBatch<'a> {
     /// Every frame of every window, window-major.
@@ -105,22 +139,7 @@ impl<'a> WindowBatch<'a> {
         device: &Device,
     ) -> Self {
         let (w, du, terms) = (windows.len(), data.action_dim(), len - 2);
-        let frames: Vec<&[u8]> = windows
-            .iter()
-            .flat_map(|&(e, s)| (s..s + len).map(move |t| data.frame(e, t)))
-            .collect();
-        let targets: Vec<&[u8]> = frames
-            .chunks_exact(len)
-            .flat_map(|window| &window[2..])
-            .copied()
-            .collect();
-        let u: Vec<f32> = windows
-            .iter()
-            .flat_map(|&(e, s)| {
-                (s + 1..s + len - 1).flat_map(move |t| (0..du).map(move |i| (e, t, i)))
-            })
-            .map(|(e, t, i)| data.actions[[e, t, i]])
-            .collect();
+        let WindowFrames { frames, targets, u } = window_frames(data, windows, len);
         Self {
             frames,
             targets,
