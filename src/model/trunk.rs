@@ -377,7 +377,6 @@ impl ConvGradient {
 /// What a training step computed outside burn's graph and still owes burn's [`Gradients`]
 /// after `backward`: the encoder trunk's tape, and gradients the host already has (the
 /// NewtonianVAE decoder's, whose loss is scored on the host).
-#[derive(Default)]
 pub struct HostBackward {
     pub(crate) trunk: Option<TrunkTape>,
     pub(crate) convs: Vec<ConvGradient>,

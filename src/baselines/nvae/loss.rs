@@ -97,10 +97,10 @@ pub const VALIDATION_NAMES: [&str; 4] = ["total", "recon", "kl", "kl_std"];
 impl ElboTerms {
     /// What the host owes burn's gradients after `total.backward()`: the decoder's
     /// convolution gradients, and the encoder trunk's tape `trunk` if it ran on the host.
-    pub fn host_backward(&self, trunk: Option<TrunkTape>) -> HostBackward {
+    pub fn host_backward(self, trunk: Option<TrunkTape>) -> HostBackward {
         HostBackward {
             trunk,
-            convs: self.decoder_gradients.clone(),
+            convs: self.decoder_gradients,
         }
     }
 
