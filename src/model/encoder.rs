@@ -255,8 +255,6 @@ impl EncoderConfig {
                         // [`Encoder::place_polar_frame`] sees the data.
                         polar_centre: polar.then(|| fixed_vector([0.0, 0.0], device)),
                         polar_axis: polar.then(|| fixed_vector([1.0, 0.0], device)),
-                        angle_gate: pairwise_angles
-                            .then(|| fixed_values(vec![1.0; keypoints], device)),
                     }),
                 )
             }
@@ -298,11 +296,6 @@ pub struct KeypointHead {
     /// Polar coordinates only: the unit direction `(cos m, sin m)` at which angles are 0; they
     /// are cut at `m + pi`. Not trained (excluded from init and the optimiser).
     polar_axis: Option<Param<Tensor<1>>>,
-    /// Polar heads with pairwise angles only, `[K]`: 1 where the head reads the keypoint's own
-    /// angle, 0 where the keypoint's attention crosses the cut in the training frames and the
-    /// head reads it only through its angles to the other keypoints (see
-    /// [`Encoder::gate_crossing_angles`]). Not trained (excluded from init and the optimiser).
-    angle_gate: Option<Param<Tensor<1>>>,
 }
 
 /// Name of the polar head's non-trained axis parameter.
@@ -310,31 +303,14 @@ pub(crate) const POLAR_AXIS: &str = "polar_axis";
 /// Name of the polar head's non-trained centre parameter. Checkpoints without it (the shipped
 /// reacher run) load with the image centre `(0, 0)`, the centre they were trained with.
 pub(crate) const POLAR_CENTRE: &str = "polar_centre";
-/// How close to the angle cut (radians) a cell counts as at the cut: the reacher's shoulder
-/// stops 20 degrees short of it, its fingertip sweeps through it.
-const CUT_ZONE_RAD: f32 = 15.0 * std::f32::consts::PI / 180.0;
-/// The rise of a keypoint's attention on the cells at the cut above which the keypoint
-/// counts as following a part through the cut. Trained keypoints attend broadly: a part's
-/// pixels move a keypoint's attention by about a percent, and its expected angle by that
-/// share of a full turn where the part crosses.
-const ATTENTION_AT_CUT: f32 = 0.005;
-/// The share of training frames in which the rise is read: a part of the system that moves
-/// through the cut in this share of frames or more counts.
-const CROSSING_SHARE: f64 = 0.005;
-/// Name of the polar head's non-trained angle gate. Checkpoints without it read every
-/// keypoint's angle, the parameter's initial value.
-pub(crate) const ANGLE_GATE: &str = "angle_gate";
 
 /// A parameter that training leaves alone.
 fn fixed_vector(values: [f32; 2], device: &Device) -> Param<Tensor<1>> {
-    fixed_values(values.to_vec(), device)
-}
-
-/// A non-trained parameter holding `values`.
-fn fixed_values(values: Vec<f32>, device: &Device) -> Param<Tensor<1>> {
-    let n = values.len();
-    Param::from_tensor(Tensor::from_data(TensorData::new(values, [n]), device))
-        .set_require_grad(false)
+    Param::from_tensor(Tensor::from_data(
+        TensorData::new(values.to_vec(), [2]),
+        device,
+    ))
+    .set_require_grad(false)
 }
 
 /// The encoder `e`. Exactly one of the heads is present.
@@ -467,61 +443,6 @@ impl Encoder {
         Some([v[0], v[1]])
     }
 
-    /// The polar head's angle gate (see [`KeypointHead::angle_gate`]): 1 for each keypoint
-    /// whose own angle the head reads; `None` without pairwise angles.
-    pub fn angle_gate(&self) -> Option<Vec<f32>> {
-        let gate = self.keypoints.as_ref()?.angle_gate.as_ref()?;
-        Some(crate::model::to_vec(gate.val()))
-    }
-
-    /// Closes the angle gate of each keypoint whose attention on the cells within
-    /// [`CUT_ZONE_RAD`] of the angle cut rises, in some of `frames`, by more than
-    /// [`ATTENTION_AT_CUT`] above its usual level (see [`rise_at_cut`]), and returns each
-    /// keypoint's rise (`None` without pairwise angles). A cell's angle jumps by a full turn at the cut, so
-    /// the expected angle of a keypoint whose attention moves across it jumps too, and a
-    /// latent read from it folds back on itself (an arm's fingertip sweeps the shoulder's
-    /// range plus the wrist's, more than a turn). The angles between keypoints, from their
-    /// expected positions, do not jump there, so the head still sees where a gated keypoint
-    /// is. Gates only close, and at least one keypoint (the one least often at the cut)
-    /// keeps its angle, so the head always has an absolute angle to read.
-    pub fn gate_crossing_angles<'a>(
-        self,
-        frames: impl Iterator<Item = &'a [u8]>,
-    ) -> (Self, Option<Vec<f64>>) {
-        let (Some(gate), Some([cos_m, sin_m])) = (self.angle_gate(), self.polar_axis()) else {
-            return (self, None);
-        };
-        let k = gate.len();
-        let mut host = self.host_encoder();
-        let mut h = vec![0.0; host.latent_dim()];
-        let mut masses: Vec<Vec<f32>> = vec![Vec::new(); k];
-        let mut zone: Option<Vec<usize>> = None;
-        for frame in frames {
-            host.encode(frame, &mut h);
-            let (attention, [xs, ys]) = host.attention_and_cells();
-            let zone = zone.get_or_insert_with(|| cells_at_cut(xs, ys, [cos_m, sin_m]));
-            for (key, masses) in masses.iter_mut().enumerate() {
-                masses.push(zone.iter().map(|&cell| attention[cell * k + key]).sum());
-            }
-        }
-        let rises: Vec<f64> = masses.into_iter().map(rise_at_cut).collect();
-        let next = close_crossing_gates(&gate, &rises);
-        (self.set_angle_gate(next), Some(rises))
-    }
-
-    /// Sets the angle gate (no-op without pairwise angles): `gate[k]` multiplies keypoint
-    /// `k`'s angle where the head reads it.
-    pub(crate) fn set_angle_gate(mut self, gate: Vec<f32>) -> Self {
-        if let Some(head) = self.keypoints.as_mut()
-            && let Some(param) = head.angle_gate.as_mut()
-        {
-            assert_eq!(gate.len(), param.val().dims()[0], "one gate per keypoint");
-            let device = head.log_sharpness.val().device();
-            *param = fixed_values(gate, &device);
-        }
-        self
-    }
-
     /// The head's output before the orientation `Q`.
     fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
@@ -647,14 +568,8 @@ impl Encoder {
                     sharpness: super::to_vec(head.log_sharpness.val().exp()),
                     grids: grids.into_iter().map(super::to_vec).collect(),
                     pairwise: head.pairwise_angles,
-                    hidden: head
-                        .hidden
-                        .as_ref()
-                        .map(|layer| head.gated(host_linear(layer))),
-                    out: match &head.hidden {
-                        Some(_) => host_linear(&head.out),
-                        None => head.gated(host_linear(&head.out)),
-                    },
+                    hidden: head.hidden.as_ref().map(host_linear),
+                    out: host_linear(&head.out),
                 }
             }
             (None, None) => unreachable!("an encoder has one head by construction"),
@@ -685,20 +600,6 @@ fn host_linear(layer: &Linear) -> HostLinear {
 }
 
 impl KeypointHead {
-    /// `first`, the host copy of the layer that reads the keypoint features, with the angle
-    /// gate folded into its weights from the keypoints' angles (the first `K` inputs).
-    fn gated(&self, mut first: HostLinear) -> HostLinear {
-        if let Some(gate) = &self.angle_gate {
-            for (row, g) in super::to_vec(gate.val()).into_iter().enumerate() {
-                let at = row * first.outputs;
-                for w in &mut first.weight[at..at + first.outputs] {
-                    *w *= g;
-                }
-            }
-        }
-        first
-    }
-
     /// The per-cell values whose expectations under a keypoint's attention are its features
     /// (the polar angle and radius about the polar centre, or the cell's `(x, y)`), and the
     /// cells' `(x, y)` (about the polar centre for a polar head): `[1, 1, rows * cols]` each.
@@ -751,11 +652,7 @@ impl KeypointHead {
         // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
         // angle and radius of the cells about the polar centre; all first coordinates, then
         // all second ones.
-        let angles = match &self.angle_gate {
-            Some(gate) => grid(0) * gate.val().reshape([1, k, 1]),
-            None => grid(0),
-        };
-        let keypoints = Tensor::cat(vec![angles, grid(1)], 1).reshape([n, 2 * k]);
+        let keypoints = Tensor::cat(vec![grid(0), grid(1)], 1).reshape([n, 2 * k]);
         let features = if self.pairwise_angles {
             // The angles between polar keypoints come from their expected (x, y).
             // [n, 2K + K (K - 1) / 2]
@@ -773,58 +670,6 @@ impl KeypointHead {
             None => self.out.forward(features),
         }
     }
-}
-
-/// The cells (positions `xs`, `ys` about the polar centre) within [`CUT_ZONE_RAD`] of the cut
-/// opposite `axis`, leaving out those near the centre, where the angle fades out.
-fn cells_at_cut(xs: &[f32], ys: &[f32], [cos_m, sin_m]: [f32; 2]) -> Vec<usize> {
-    (0..xs.len())
-        .filter(|&cell| {
-            let (x, y) = (xs[cell], ys[cell]);
-            let along = x * cos_m + y * sin_m;
-            let across = y * cos_m - x * sin_m;
-            along.hypot(across) > POLAR_FADE_RADIUS
-                && across.atan2(along).abs() > std::f32::consts::PI - CUT_ZONE_RAD
-        })
-        .collect()
-}
-
-/// How far a keypoint's attention on the cells at the cut (`masses`, one per frame) rises
-/// above its median in the frames where it rises most (its `1 - CROSSING_SHARE` quantile): a
-/// part moving through the cut raises it, attention spread evenly over the frame holds it
-/// level.
-fn rise_at_cut(mut masses: Vec<f32>) -> f64 {
-    if masses.is_empty() {
-        return 0.0;
-    }
-    masses.sort_by(f32::total_cmp);
-    let at = |q: f64| f64::from(masses[((masses.len() - 1) as f64 * q).round() as usize]);
-    at(1.0 - CROSSING_SHARE) - at(0.5)
-}
-
-/// `gate` with the gate of each keypoint whose attention at the cut rises by more than
-/// [`ATTENTION_AT_CUT`] closed. Were every gate to close, the open keypoint with the
-/// smallest rise keeps its angle.
-fn close_crossing_gates(gate: &[f32], rises: &[f64]) -> Vec<f32> {
-    let mut next: Vec<f32> = gate
-        .iter()
-        .zip(rises)
-        .map(|(&g, &rise)| {
-            if rise > f64::from(ATTENTION_AT_CUT) {
-                0.0
-            } else {
-                g
-            }
-        })
-        .collect();
-    if next.iter().all(|&g| g == 0.0)
-        && let Some(keep) = (0..gate.len())
-            .filter(|&key| gate[key] > 0.0)
-            .min_by(|&a, &b| rises[a].total_cmp(&rises[b]))
-    {
-        next[keep] = gate[keep];
-    }
-    next
 }
 
 /// Rewrites `layer` so each output `y_j` becomes `(y_j - mean_j) scale_j` (`mean`, `scale`:
@@ -912,57 +757,6 @@ mod tests {
     use super::*;
     use crate::envs::{EnvKind, FRAME_BYTES};
     use crate::model::{cpu_device, frames_to_tensor, reinit_params, to_vec};
-
-    #[test]
-    fn rise_at_cut_reads_the_rare_frames_above_the_median() {
-        // 1000 frames at the usual level, 10 (1%) where a part passes the cut.
-        let mut masses = vec![0.05f32; 1000];
-        masses.extend([0.07f32; 10]);
-        assert!((rise_at_cut(masses) - 0.02).abs() < 1e-6);
-        // Level attention, and a single stray frame (0.1%, under the share read), do not rise.
-        assert_eq!(rise_at_cut(vec![0.05; 1000]), 0.0);
-        let mut stray = vec![0.05f32; 1000];
-        stray[3] = 0.5;
-        assert_eq!(rise_at_cut(stray), 0.0);
-        assert_eq!(rise_at_cut(Vec::new()), 0.0);
-    }
-
-    #[test]
-    fn cells_at_cut_lie_opposite_the_axis_away_from_the_centre() {
-        // Axis along +y: the cut runs along -y.
-        let cells = [
-            (0.0, -0.5),  // on the cut
-            (0.1, -0.5),  // 11 degrees off it
-            (0.2, -0.5),  // 22 degrees off it
-            (0.0, 0.5),   // on the axis
-            (0.0, -0.02), // on the cut, inside the centre's fade
-            (-0.1, -0.5), // 11 degrees off it, the other side
-        ];
-        let (xs, ys): (Vec<f32>, Vec<f32>) = cells.into_iter().unzip();
-        assert_eq!(cells_at_cut(&xs, &ys, [0.0, 1.0]), vec![0, 1, 5]);
-    }
-
-    #[test]
-    fn crossing_gates_close_and_one_angle_stays_open() {
-        let rise = f64::from(ATTENTION_AT_CUT);
-        assert_eq!(
-            close_crossing_gates(&[1.0, 1.0, 1.0], &[0.2 * rise, 3.0 * rise, 0.9 * rise]),
-            vec![1.0, 0.0, 1.0]
-        );
-        // A closed gate stays closed whatever the keypoint does later.
-        assert_eq!(
-            close_crossing_gates(&[0.0, 1.0], &[0.0, 0.0]),
-            vec![0.0, 1.0]
-        );
-        // Every open keypoint crossing: the one that rises least keeps its angle.
-        assert_eq!(
-            close_crossing_gates(
-                &[1.0, 1.0, 0.0, 1.0],
-                &[4.0 * rise, 2.0 * rise, 0.0, 3.0 * rise]
-            ),
-            vec![0.0, 1.0, 0.0, 0.0]
-        );
-    }
 
     /// Halves the pair inputs' rows (`scale_pairwise_inputs(0.5)`) of the tanh layer with
     /// `outputs` units and checks that exactly the rows after the first `unscaled` inputs

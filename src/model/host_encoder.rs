@@ -534,17 +534,6 @@ impl HostEncoder {
         Self { transform, ..self }
     }
 
-    /// The frame last encoded: each keypoint's attention `[cells, K]` (cell-major) and the
-    /// cells' `(x, y)` about the polar centre, `[cells]` each. A polar head with pairwise
-    /// angles only (whose last two grids are those positions).
-    pub(crate) fn attention_and_cells(&self) -> (&[f32], [&[f32]; 2]) {
-        let HostHead::Keypoints { grids, .. } = &self.head else {
-            panic!("attention needs a keypoint head");
-        };
-        assert_eq!(grids.len(), 4, "cell positions need pairwise angles");
-        (&self.buffers.attention, [&grids[2], &grids[3]])
-    }
-
     /// `h` of one RGB u8 frame (64x64, row-major, channels innermost), written into `h`.
     pub fn encode(&mut self, frame: &[u8], h: &mut [f64]) {
         pulp::Arch::new().dispatch(Encode {
@@ -777,10 +766,6 @@ mod tests {
             // A centre and a cut away from the defaults and a signed permutation, as a trained
             // encoder has.
             let encoder = encoder.set_polar_frame([0.1, -0.05], [-0.6, 0.8]);
-            // Some keypoints' angles gated off, as after training past an arm's fingertip.
-            let keypoints = encoder.angle_gate().map_or(0, |gate| gate.len());
-            let gate = (0..keypoints).map(|k| (k % 3 != 1) as u8 as f32).collect();
-            let encoder = encoder.set_angle_gate(gate);
             let mut model = crate::model::ProclModel {
                 encoder,
                 dynamics: config.model.dynamics.init(&device),

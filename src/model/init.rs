@@ -44,7 +44,6 @@ impl ModuleMapper for SeededInit {
             || name == super::LATENT_TRANSFORM
             || name == super::encoder::POLAR_AXIS
             || name == super::encoder::POLAR_CENTRE
-            || name == super::encoder::ANGLE_GATE
         {
             return param;
         }

@@ -13,7 +13,7 @@ mod trunk;
 mod winograd;
 
 pub use dynamics::{Dynamics, DynamicsConfig, Transition};
-pub(crate) use encoder::{ANGLE_GATE, POLAR_CENTRE};
+pub(crate) use encoder::POLAR_CENTRE;
 pub use encoder::{Encoder, EncoderConfig, EncoderHead};
 pub use host_encoder::HostEncoder;
 pub use init::reinit_params;

@@ -149,14 +149,9 @@ impl ModuleMapper for Restore<'_> {
                         .set_require_grad(require_grad)
                 })
             }
-            // A checkpoint without the polar centre was trained about the image centre, one
-            // without the angle gate read every keypoint's angle: the parameters' initial
-            // values.
-            None if matches!(
-                self.path.last().map(String::as_str),
-                Some(crate::model::POLAR_CENTRE | crate::model::ANGLE_GATE)
-            ) =>
-            {
+            // A checkpoint without the polar centre was trained about the image centre, the
+            // parameter's initial value.
+            None if self.path.last().map(String::as_str) == Some(crate::model::POLAR_CENTRE) => {
                 param
             }
             found => {

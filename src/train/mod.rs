@@ -108,51 +108,13 @@ impl Objective for ProclObjective<'_> {
         (terms.total.clone(), terms.values().into(), trunk.into())
     }
 
-    fn after_update(&mut self, mut model: ProclModel, step: u64) -> Result<ProclModel> {
-        if angle_gate_check_due(self.config.steps, step) {
-            let frames = self.data.every_frame().step_by(ANGLE_GATE_FRAME_STRIDE);
-            let (encoder, shares) = model.encoder.gate_crossing_angles(frames);
-            model.encoder = encoder;
-            if let (Some(shares), Some(gate)) = (shares, model.encoder.angle_gate()) {
-                log_angle_gate(self.run, step + 1, &shares, &gate)?;
-            }
-        }
+    fn after_update(&mut self, model: ProclModel, step: u64) -> Result<ProclModel> {
         let turn = orientation_window_end(self.search.as_mut(), self.config, self.run, step)?;
         Ok(match turn {
             Some(flip) => model.reorient_latent(&flip),
             None => model,
         })
     }
-}
-
-/// Steps between checks of which keypoints' angles cross the polar head's cut.
-const ANGLE_GATE_EVERY: u64 = 50;
-/// Every this many frames of the dataset are encoded for the check (a 10k-transition
-/// dataset gives about 2000).
-const ANGLE_GATE_FRAME_STRIDE: usize = 5;
-
-/// Whether the angle gate is checked after step `step` (0-based) of `steps`: every
-/// [`ANGLE_GATE_EVERY`] steps over the first half of training, so that the head has the
-/// second half to settle on what it reads.
-fn angle_gate_check_due(steps: u64, step: u64) -> bool {
-    (step + 1).is_multiple_of(ANGLE_GATE_EVERY) && 2 * (step + 1) <= steps
-}
-
-/// Appends `step, share at the cut per keypoint..., gate per keypoint...` to the run
-/// folder's `angle_gate.csv`.
-fn log_angle_gate(run: &RunPaths, step: u64, shares: &[f64], gate: &[f32]) -> Result<()> {
-    let k = shares.len();
-    let header = std::iter::once("step".to_string())
-        .chain((0..k).map(|key| format!("at_cut_{key}")))
-        .chain((0..k).map(|key| format!("gate_{key}")))
-        .collect::<Vec<_>>()
-        .join(",");
-    let row = std::iter::once(step.to_string())
-        .chain(shares.iter().map(|s| format!("{s:.4}")))
-        .chain(gate.iter().map(|g| g.to_string()))
-        .collect::<Vec<_>>()
-        .join(",");
-    crate::fsutil::append_line(&run.dir.join("angle_gate.csv"), &header, &row)
 }
 
 /// After step `step` (0-based): where an orientation window ends there, the reorientation
@@ -519,18 +481,6 @@ pub(crate) fn tiny_dataset(env: crate::envs::EnvKind, seed: u64, transitions: us
 mod tests {
     use super::*;
     use crate::envs::EnvKind;
-
-    #[test]
-    fn angle_gate_is_checked_every_50_steps_over_the_first_half() {
-        let due: Vec<u64> = (0..1200)
-            .filter(|&s| angle_gate_check_due(1200, s))
-            .collect();
-        assert_eq!(due, (1..=12).map(|k| 50 * k - 1).collect::<Vec<_>>());
-        assert!(
-            !angle_gate_check_due(99, 49),
-            "the first check needs 100 steps"
-        );
-    }
 
     #[test]
     fn resumed_metrics_keep_steps_up_to_the_checkpoint_under_the_current_header() {
