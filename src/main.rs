@@ -244,9 +244,14 @@ enum Command {
         /// First training seed (seeds are seed_start .. seed_start + seeds).
         #[arg(long, default_value_t = 0)]
         seed_start: u64,
-        /// Evaluation episodes per seed.
+        /// Evaluation episodes per seed (and per task set).
         #[arg(long, default_value_t = 50)]
         episodes: usize,
+        /// Evaluate each trained seed on this many sets of --episodes tasks (task seeds 1000,
+        /// 2000, ...): a seed's success moves with the set of tasks as much as with the
+        /// training seed, and the summary's min-max then runs over both.
+        #[arg(long, default_value_t = 1)]
+        task_sets: u64,
         /// Override the env's protocol horizon.
         #[arg(long)]
         horizon: Option<usize>,
@@ -781,6 +786,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             seeds,
             seed_start,
             episodes,
+            task_sets,
             horizon,
             transitions,
             episode_len,
@@ -795,8 +801,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     anyhow::bail!("the grid has no cell named `{name}`");
                 }
             }
-            if seeds == 0 || episodes == 0 {
-                anyhow::bail!("--seeds and --episodes must be at least 1");
+            if seeds == 0 || episodes == 0 || task_sets == 0 {
+                anyhow::bail!("--seeds, --episodes and --task-sets must be at least 1");
             }
             if list_tasks {
                 // Custom data's recipe comes from its frames, which are not collected yet; any
@@ -846,20 +852,37 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let (data, _) =
                 procl::runner::stages::collect_or_reuse(&collect_config, &data_path, |_| {})?;
             let protocol = procl::runner::stages::reach_protocol(env, episodes, horizon);
+            let task_sets: Vec<_> = (0..task_sets)
+                .map(|set| procl::eval::ReachConfig {
+                    seed: protocol.seed + 1000 * set,
+                    ..protocol.clone()
+                })
+                .collect();
             let mut line = ThrottledLine::first_after(std::time::Duration::from_secs(30));
             let results = procl::runner::ablate::run_grid(
                 &grid,
                 &data,
                 seed_start..seed_start + seeds,
-                &protocol,
+                &task_sets,
                 &out,
                 work,
                 |r| {
                     println!(
-                        "{} seed {}: success {:.0}%, final {:.4}, R^2 {:.3}, det {}, {:.0} s",
+                        "{} seed {}: success {:.1}%{}, final {:.4}, R^2 {:.3}, det {}, {:.0} s",
                         r.cell,
                         r.seed,
                         100.0 * r.success_rate,
+                        match r.success_per_task_set.as_slice() {
+                            [_, _, ..] => format!(
+                                " (task sets: {})",
+                                r.success_per_task_set
+                                    .iter()
+                                    .map(|s| format!("{:.1}%", 100.0 * s))
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
+                            ),
+                            _ => String::new(),
+                        },
                         r.final_mean,
                         r.linear_r2,
                         r.det.map_or("-".into(), |d| format!("{d:.2}")),

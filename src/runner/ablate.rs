@@ -117,7 +117,12 @@ impl Grid {
 pub struct CellResult {
     pub cell: String,
     pub seed: u64,
+    /// Mean over the task sets (each holds the same number of episodes).
     pub success_rate: f64,
+    /// Success on each task set, in the order of [`run_grid`]'s protocols.
+    #[serde(default)]
+    pub success_per_task_set: Vec<f64>,
+    /// Mean over the task sets.
     pub final_mean: f64,
     pub linear_r2: f64,
     pub det: Option<f64>,
@@ -142,9 +147,11 @@ pub enum GridWork {
 /// The name of a task's result file in its run folder.
 pub const TASK_RESULT: &str = "result.json";
 
-/// Runs (or resumes) the grid on `data`, training seeds `seeds` per cell, into `out`: cell
+/// Runs (or resumes) the grid on `data`, training seeds `seeds` per cell and evaluating each
+/// trained run on every protocol of `task_sets` (one set of tasks each), into `out`: cell
 /// `c`, seed `s` trains in `out/c/seed-s/` and leaves its [`CellResult`] there in
-/// `result.json` (and, without `Task`, as a line of `out/ablation.jsonl`). Tasks with a result
+/// `result.json` (and, without `Task`, as a line of `out/ablation.jsonl`), its `eval.json` the
+/// first task set's report. Tasks with a result
 /// in either place are read back instead of trained, so grids split across processes or
 /// machines merge by copying their folders (or concatenating `ablation.jsonl`).
 /// `progress(cell, seed, step, steps, values)` is called after every training step.
@@ -153,12 +160,15 @@ pub fn run_grid(
     grid: &Grid,
     data: &Dataset,
     seeds: std::ops::Range<u64>,
-    protocol: &ReachConfig,
+    task_sets: &[ReachConfig],
     out: &Path,
     work: GridWork,
     mut log: impl FnMut(&CellResult),
     mut progress: impl FnMut(&str, u64, u64, u64, &StepValues),
 ) -> Result<Vec<CellResult>> {
+    let Some(protocol) = task_sets.first() else {
+        return Err(Error::config("task-sets", "must be at least 1"));
+    };
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     // Training every task writes the grid's folder; one task writes its run folder only, and a
     // report from what is there only reads.
@@ -212,15 +222,27 @@ pub fn run_grid(
         )?;
         let train_seconds = start.elapsed().as_secs_f64();
         let diagnostics = write_env_diagnostics(&run)?;
-        let report = evaluate_run(&run, protocol, |_| {})?;
+        // The first set last, so that the run's eval.json is its report.
+        let mut reports = task_sets
+            .iter()
+            .rev()
+            .map(|set| evaluate_run(&run, set, |_| {}))
+            .collect::<Result<Vec<_>>>()?;
+        reports.reverse();
+        let mean = |value: &dyn Fn(&crate::eval::ReachReport) -> f64| {
+            reports.iter().map(value).sum::<f64>() / reports.len() as f64
+        };
+        let success_per_task_set: Vec<f64> =
+            reports.iter().map(|r| r.methods[0].success_rate).collect();
         let result = CellResult {
             cell: name.clone(),
             seed: *seed,
-            success_rate: report.methods[0].success_rate,
-            final_mean: report.methods[0].final_mean,
+            success_rate: mean(&|r| r.methods[0].success_rate),
+            success_per_task_set,
+            final_mean: mean(&|r| r.methods[0].final_mean),
             linear_r2: diagnostics.linear_r2,
             det: diagnostics.config_to_latent_det,
-            oracle_success_rate: report.methods.get(1).map_or(f64::NAN, |m| m.success_rate),
+            oracle_success_rate: mean(&|r| r.methods.get(1).map_or(f64::NAN, |m| m.success_rate)),
             train_seconds,
         };
         crate::fsutil::write_json(&run.dir.join(TASK_RESULT), &result)?;
@@ -236,7 +258,7 @@ pub fn run_grid(
     done.retain(|r| order.contains(&&r.cell));
     done.sort_by_key(|r| (order.iter().position(|n| *n == &r.cell), r.seed));
     if !matches!(work, GridWork::Task(_)) {
-        write_summary(out, &done, &order, protocol)?;
+        write_summary(out, &done, &order, protocol, task_sets.len())?;
     }
     Ok(done)
 }
@@ -277,11 +299,17 @@ fn write_summary(
     results: &[CellResult],
     order: &[&String],
     protocol: &ReachConfig,
+    task_sets: usize,
 ) -> Result<PathBuf> {
     let json_path = out.join("ablation.json");
     crate::fsutil::write_json(&json_path, results)?;
+    let sets = if task_sets > 1 {
+        format!(" on each of {task_sets} task sets; min-max over seeds and sets")
+    } else {
+        String::new()
+    };
     let mut md = format!(
-        "# Ablation\n\n{} episodes per seed, {} steps, success = final distance < {} {}.\n\n\
+        "# Ablation\n\n{} episodes per seed{sets}, {} steps, success = final distance < {} {}.\n\n\
          | cell | seeds | success mean | success min-max | final distance | R^2 | det(q->h) > 0 | train s |\n|---|---|---|---|---|---|---|---|\n",
         protocol.episodes, protocol.horizon, protocol.success_threshold, protocol.distance_unit
     );
@@ -292,14 +320,23 @@ fn write_summary(
         }
         let n = rows.len() as f64;
         let mean = |f: &dyn Fn(&CellResult) -> f64| rows.iter().map(|r| f(r)).sum::<f64>() / n;
-        let min = rows.iter().map(|r| r.success_rate).fold(f64::MAX, f64::min);
-        let max = rows.iter().map(|r| r.success_rate).fold(f64::MIN, f64::max);
+        // Each seed's success on every task set (results from before task sets were
+        // recorded carry only their mean).
+        let each = || {
+            rows.iter()
+                .flat_map(|r| match r.success_per_task_set.as_slice() {
+                    [] => vec![r.success_rate],
+                    sets => sets.to_vec(),
+                })
+        };
+        let min = each().fold(f64::MAX, f64::min);
+        let max = each().fold(f64::MIN, f64::max);
         let positive = rows
             .iter()
             .filter(|r| r.det.is_some_and(|d| d > 0.0))
             .count();
         md.push_str(&format!(
-            "| {name} | {} | {:.0}% | {:.0}-{:.0}% | {:.4} | {:.3} | {positive}/{} | {:.0} |\n",
+            "| {name} | {} | {:.1}% | {:.1}-{:.1}% | {:.4} | {:.3} | {positive}/{} | {:.0} |\n",
             rows.len(),
             100.0 * mean(&|r| r.success_rate),
             100.0 * min,

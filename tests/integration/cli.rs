@@ -388,3 +388,40 @@ fn ablation_tasks_run_one_per_job_array_index_and_merge() {
     let jsonl = std::fs::read_to_string(out.join("ablation.jsonl")).unwrap();
     assert_eq!(jsonl.lines().count(), 2);
 }
+
+#[test]
+fn ablation_evaluates_each_seed_on_every_task_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = dir.path().join("grid.toml");
+    std::fs::write(
+        &grid,
+        "[base]\nsteps = 2\nbatch_size = 8\n[[cell]]\nname = \"default\"\n",
+    )
+    .unwrap();
+    let out = dir.path().join("grid");
+    let args = |extra: &[&str]| tiny_ablate(&["--env", "point-mass"], &grid, 1, 40, &out, extra);
+    fails_with(&strs(&args(&["--task-sets", "0"])), "--task-sets");
+    assert!(!out.exists());
+    succeeds(&strs(&args(&["--task-sets", "3"])));
+    let result: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("default/seed-0/result.json")).unwrap(),
+    )
+    .unwrap();
+    let sets: Vec<f64> = result["success_per_task_set"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s.as_f64().unwrap())
+        .collect();
+    assert_eq!(sets.len(), 3);
+    let mean = sets.iter().sum::<f64>() / 3.0;
+    assert!((result["success_rate"].as_f64().unwrap() - mean).abs() < 1e-12);
+    // The run's eval.json is the first set's, the protocol's own task seed.
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("default/seed-0/eval.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(report["protocol"]["seed"], 1000);
+    let summary = std::fs::read_to_string(out.join("ablation.md")).unwrap();
+    assert!(summary.contains("on each of 3 task sets"), "{summary}");
+}
