@@ -1,6 +1,6 @@
 //! The `procl` binary: exit codes, one-line errors, no clobbering.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 pub(crate) fn procl(args: &[&str]) -> Output {
@@ -91,6 +91,13 @@ pub(crate) fn tiny_ablate(
     ]);
     args.extend_from_slice(extra);
     args.into_iter().map(String::from).collect()
+}
+
+/// `dir/grid.toml`: `cells` over a base of 2 training steps on batches of 8.
+fn tiny_grid(dir: &Path, cells: &str) -> PathBuf {
+    let grid = dir.join("grid.toml");
+    std::fs::write(&grid, format!("[base]\nsteps = 2\nbatch_size = 8\n{cells}")).unwrap();
+    grid
 }
 
 #[test]
@@ -344,12 +351,10 @@ fn a_second_writer_into_a_locked_folder_is_refused() {
 #[test]
 fn ablation_tasks_run_one_per_job_array_index_and_merge() {
     let dir = tempfile::tempdir().unwrap();
-    let grid = dir.path().join("grid.toml");
-    std::fs::write(
-        &grid,
-        "[base]\nsteps = 2\nbatch_size = 8\n[[cell]]\nname = \"default\"\n[[cell]]\nname = \"q_v=0\"\nloss = { q_v = 0.0 }\n",
-    )
-    .unwrap();
+    let grid = tiny_grid(
+        dir.path(),
+        "[[cell]]\nname = \"default\"\n[[cell]]\nname = \"q_v=0\"\nloss = { q_v = 0.0 }\n",
+    );
     let out = dir.path().join("grid");
     let args = |extra: &[&str]| tiny_ablate(&["--env", "point-mass"], &grid, 2, 40, &out, extra);
     let run = |extra: &[&str]| succeeds(&strs(&args(extra)));
@@ -392,12 +397,7 @@ fn ablation_tasks_run_one_per_job_array_index_and_merge() {
 #[test]
 fn ablation_evaluates_each_seed_on_every_task_set() {
     let dir = tempfile::tempdir().unwrap();
-    let grid = dir.path().join("grid.toml");
-    std::fs::write(
-        &grid,
-        "[base]\nsteps = 2\nbatch_size = 8\n[[cell]]\nname = \"default\"\n",
-    )
-    .unwrap();
+    let grid = tiny_grid(dir.path(), "[[cell]]\nname = \"default\"\n");
     let out = dir.path().join("grid");
     let args = |extra: &[&str]| tiny_ablate(&["--env", "point-mass"], &grid, 1, 40, &out, extra);
     fails_with(&strs(&args(&["--task-sets", "0"])), "--task-sets");
