@@ -258,7 +258,7 @@ pub fn run_grid(
     done.retain(|r| order.contains(&&r.cell));
     done.sort_by_key(|r| (order.iter().position(|n| *n == &r.cell), r.seed));
     if !matches!(work, GridWork::Task(_)) {
-        write_summary(out, &done, &order, protocol, task_sets.len())?;
+        write_summary(out, &done, &order, protocol)?;
     }
     Ok(done)
 }
@@ -299,14 +299,17 @@ fn write_summary(
     results: &[CellResult],
     order: &[&String],
     protocol: &ReachConfig,
-    task_sets: usize,
 ) -> Result<PathBuf> {
     let json_path = out.join("ablation.json");
     crate::fsutil::write_json(&json_path, results)?;
-    let sets = if task_sets > 1 {
-        format!(" on each of {task_sets} task sets; min-max over seeds and sets")
-    } else {
-        String::new()
+    // Read from the results, not the command line: results already in the folder are reused
+    // whatever `--task-sets` their run had.
+    let set_counts = results.iter().map(|r| r.success_per_task_set.len().max(1));
+    let (fewest, most) = set_counts.fold((usize::MAX, 0), |(lo, hi), n| (lo.min(n), hi.max(n)));
+    let sets = match (fewest, most) {
+        (_, 0 | 1) => String::new(),
+        (lo, hi) if lo == hi => format!(" on each of {hi} task sets; min-max over seeds and sets"),
+        (lo, hi) => format!(" on {lo} to {hi} task sets; min-max over seeds and sets"),
     };
     let mut md = format!(
         "# Ablation\n\n{} episodes per seed{sets}, {} steps, success = final distance < {} {}.\n\n\

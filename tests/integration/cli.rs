@@ -424,4 +424,9 @@ fn ablation_evaluates_each_seed_on_every_task_set() {
     assert_eq!(report["protocol"]["seed"], 1000);
     let summary = std::fs::read_to_string(out.join("ablation.md")).unwrap();
     assert!(summary.contains("on each of 3 task sets"), "{summary}");
+    // A second seed on one set beside the reused three-set result: the summary says so.
+    let more = tiny_ablate(&["--env", "point-mass"], &grid, 2, 40, &out, &[]);
+    succeeds(&strs(&more));
+    let summary = std::fs::read_to_string(out.join("ablation.md")).unwrap();
+    assert!(summary.contains("on 1 to 3 task sets"), "{summary}");
 }
