@@ -90,15 +90,6 @@ pub struct EncoderConfig {
     /// there; faded, its angle goes to 0 from both sides and stays continuous.
     #[serde(default)]
     pub polar_cut_fade_deg: f64,
-    /// Polar heads: the first `anchor_keypoints` keypoints are anchors; the others measure
-    /// their cells' angles from the anchors' direction about the centre (the direction of the
-    /// sum of their expected `(x, y)`) instead of the fixed axis, so their cut sits opposite
-    /// the anchors and turns with them. The anchors' own angles stay measured from the axis.
-    #[serde(default)]
-    pub anchor_keypoints: usize,
-    /// Initial sharpness of the anchors (`None`: `keypoint_sharpness`).
-    #[serde(default)]
-    pub anchor_sharpness: Option<f64>,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -130,8 +121,6 @@ impl EncoderConfig {
             trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
             polar_cut_fade_deg: 0.0,
-            anchor_keypoints: 0,
-            anchor_sharpness: None,
         }
     }
 
@@ -199,21 +188,6 @@ impl EncoderConfig {
                 format!("{std} is not a number >= 0"),
             ));
         }
-        if self.anchor_keypoints > 0 {
-            match self.head {
-                EncoderHead::SoftArgmax {
-                    keypoints,
-                    polar: true,
-                    ..
-                } if self.anchor_keypoints < keypoints => {}
-                _ => {
-                    return Err(Error::config(
-                        "model.encoder.anchor_keypoints",
-                        "needs a polar head with more keypoints than anchors",
-                    ));
-                }
-            }
-        }
         match self.head {
             EncoderHead::Mlp { hidden: 0 } | EncoderHead::SoftArgmax { keypoints: 0, .. } => {
                 Err(Error::config("model.encoder.head", "size must be positive"))
@@ -267,22 +241,11 @@ impl EncoderConfig {
                 (
                     None,
                     Some(KeypointHead {
-                        log_sharpness: Param::from_tensor(Tensor::from_data(
-                            TensorData::new(
-                                (0..keypoints)
-                                    .map(|key| {
-                                        let sharpness = match self.anchor_sharpness {
-                                            Some(s) if key < self.anchor_keypoints => s,
-                                            _ => self.keypoint_sharpness,
-                                        };
-                                        sharpness.ln() as f32
-                                    })
-                                    .collect::<Vec<_>>(),
-                                [keypoints],
-                            ),
+                        log_sharpness: Param::from_tensor(Tensor::full(
+                            [keypoints],
+                            self.keypoint_sharpness.ln(),
                             device,
                         )),
-                        anchors: self.anchor_keypoints,
                         features: conv(c2, keypoints, 1, 1, 0),
                         cut_fade_rad: self.polar_cut_fade_deg.to_radians(),
                         pairwise_angles,
@@ -322,8 +285,6 @@ pub struct KeypointHead {
     pairwise_angles: bool,
     /// Width of the polar angle's fade before the cut, radians (0: none).
     cut_fade_rad: f64,
-    /// The first `anchors` keypoints set the axis the others' angles are measured from.
-    anchors: usize,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -512,17 +473,6 @@ impl Encoder {
                 soft_argmax: None,
             };
         };
-        if head.anchors > 0 {
-            // The anchored angles need the attention itself: burn runs the soft-argmax.
-            layers.push(TrunkLayer {
-                conv: &head.features,
-                relu: false,
-            });
-            return Trunk {
-                layers,
-                soft_argmax: None,
-            };
-        }
         layers.push(TrunkLayer {
             conv: &head.features,
             relu: false,
@@ -593,13 +543,7 @@ impl Encoder {
             .into_iter()
             .map(|grid| (attention.clone() * grid).sum_dim(2)) // [n, K, 1]
             .collect();
-        let expectations = Tensor::cat(expectations, 2);
-        let expectations = if head.anchors > 0 {
-            head.angles_from_anchors(attention, expectations, rows, cols)
-        } else {
-            expectations
-        };
-        head.latent_from_expectations(expectations)
+        head.latent_from_expectations(Tensor::cat(expectations, 2))
     }
 }
 
@@ -624,8 +568,6 @@ impl Encoder {
                     sharpness: super::to_vec(head.log_sharpness.val().exp()),
                     grids: grids.into_iter().map(super::to_vec).collect(),
                     pairwise: head.pairwise_angles,
-                    anchors: head.anchors,
-                    cut_fade: head.cut_fade_rad as f32,
                     hidden: head.hidden.as_ref().map(host_linear),
                     out: host_linear(&head.out),
                 }
@@ -697,35 +639,10 @@ impl KeypointHead {
     fn expectation_grids(&self, rows: usize, cols: usize, device: &Device) -> Vec<Tensor<3>> {
         let ([first, second], [grid_x, grid_y]) = self.coordinate_grids(rows, cols, device);
         let mut grids = vec![first, second];
-        if self.pairwise_angles || self.anchors > 0 {
+        if self.pairwise_angles {
             grids.extend([grid_x, grid_y]);
         }
         grids
-    }
-
-    /// Replaces the angles of the keypoints after the anchors in `expectations` (`[n, K, G]`,
-    /// with the cells' `(x, y)` as grids 2 and 3) by the expected angles of the cells they
-    /// attend to (`attention`: `[n, K, cells]`) measured from the anchors' direction.
-    fn angles_from_anchors(
-        &self,
-        attention: Tensor<3>,
-        expectations: Tensor<3>,
-        rows: usize,
-        cols: usize,
-    ) -> Tensor<3> {
-        let [_, k, g] = expectations.dims();
-        let a = self.anchors;
-        let anchor = |grid: usize| expectations.clone().narrow(2, grid, 1).narrow(1, 0, a);
-        let (ax, ay) = (anchor(2).sum_dim(1), anchor(3).sum_dim(1)); // [n, 1, 1]
-        let norm = (ax.clone().powi_scalar(2) + ay.clone().powi_scalar(2))
-            .add_scalar(1e-12)
-            .sqrt();
-        let (cos_m, sin_m) = (ax / norm.clone(), ay / norm);
-        let (_, [grid_x, grid_y]) = self.coordinate_grids(rows, cols, &attention.device());
-        let (relative, _) = polar_grid(grid_x, grid_y, cos_m, sin_m, self.cut_fade_rad);
-        let others = (attention.narrow(1, a, k - a) * relative).sum_dim(2); // [n, K - A, 1]
-        let angles = Tensor::cat(vec![anchor(0), others], 1); // [n, K, 1]
-        Tensor::cat(vec![angles, expectations.narrow(2, 1, g - 1)], 2)
     }
 
     /// The expectations `[n, K, G]` of [`Self::expectation_grids`] -> `h`.

@@ -394,10 +394,6 @@ pub(crate) enum HostHead {
         /// `(x, y)` or the polar `(angle, radius)`, then with `pairwise` the `(x, y)`.
         grids: Vec<Vec<f32>>,
         pairwise: bool,
-        /// The first `anchors` keypoints set the axis the others' angles are measured from.
-        anchors: usize,
-        /// Width of the polar angle's fade before the cut, radians.
-        cut_fade: f32,
         hidden: Option<HostLinear>,
         out: HostLinear,
     },
@@ -586,8 +582,6 @@ impl HostEncoder {
                 sharpness,
                 grids,
                 pairwise,
-                anchors,
-                cut_fade,
                 hidden,
                 out,
             } => {
@@ -606,16 +600,6 @@ impl HostEncoder {
                     &mut buffers.attention,
                     &mut buffers.expectations,
                 );
-                if *anchors > 0 {
-                    angles_from_anchors(
-                        *anchors,
-                        *cut_fade,
-                        (&grids[2], &grids[3]),
-                        &buffers.attention,
-                        &mut buffers.expectations,
-                        g,
-                    );
-                }
                 let e = |key: usize, grid: usize| buffers.expectations[key * g + grid];
                 let feats = &mut buffers.features;
                 feats.clear();
@@ -652,48 +636,6 @@ impl HostEncoder {
                 .map(|j| self.transform[i * du + j] * buffers.raw[j])
                 .sum::<f32>() as f64;
         }
-    }
-}
-
-/// Replaces the angle (grid 0) of every keypoint after the first `anchors` in
-/// `expectations` (`[K, g]`) by the expected angle of the cells it attends to (`attention`:
-/// `[cells, K]`) measured from
-/// the anchors' direction: the sum of their expected `(x, y)` (grids 2 and 3, `cells` long).
-fn angles_from_anchors(
-    anchors: usize,
-    cut_fade: f32,
-    (grid_x, grid_y): (&[f32], &[f32]),
-    attention: &[f32],
-    expectations: &mut [f32],
-    g: usize,
-) {
-    let k = expectations.len() / g;
-    let cells = grid_x.len();
-    let (ax, ay) = (0..anchors).fold((0.0f32, 0.0f32), |(x, y), key| {
-        (x + expectations[key * g + 2], y + expectations[key * g + 3])
-    });
-    let norm = (ax * ax + ay * ay + 1e-12).sqrt();
-    let (cos_m, sin_m) = (ax / norm, ay / norm);
-    let relative: Vec<f32> = grid_x
-        .iter()
-        .zip(grid_y)
-        .map(|(&x, &y)| {
-            let along = x * cos_m + y * sin_m;
-            let across = y * cos_m - x * sin_m;
-            let r2 = along * along + across * across;
-            let angle = across.atan2(along);
-            let angle = if cut_fade > 0.0 {
-                angle * ((std::f32::consts::PI - angle.abs()) / cut_fade).clamp(0.0, 1.0)
-            } else {
-                angle
-            };
-            angle * r2 / (r2 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS)
-        })
-        .collect();
-    for key in anchors..k {
-        expectations[key * g] = (0..cells)
-            .map(|c| attention[c * k + key] * relative[c])
-            .sum();
     }
 }
 
@@ -766,9 +708,8 @@ pub(crate) mod form_checks {
 
 #[cfg(test)]
 mod tests {
-    use crate::envs::EnvKind;
     use crate::model::{cpu_device, frames_to_tensor, to_vec};
-    use crate::train::{Method, Preset, TrainConfig};
+    use crate::train::{Method, TrainConfig};
 
     /// Each shipped encoder runs its convolutions in the forms the design gives them: the
     /// first convolution and a strided second one direct, the reacher's stride-1 second by
@@ -818,15 +759,8 @@ mod tests {
     #[test]
     fn host_encoding_matches_the_tensor_encoder() {
         let device = cpu_device();
-        let anchored = (EnvKind::Reacher, Preset::Procl);
-        for ((env, preset), anchors) in crate::model::SHIPPED_HEADS
-            .into_iter()
-            .map(|head| (head, 0))
-            .chain([(anchored, 4)])
-        {
-            let mut config = TrainConfig::preset(preset, Method::Procl, env);
-            config.model.encoder.anchor_keypoints = anchors;
-            config.model.encoder.anchor_sharpness = Some(300.0);
+        for (env, preset) in crate::model::SHIPPED_HEADS {
+            let config = TrainConfig::preset(preset, Method::Procl, env);
             let frames = crate::model::start_frames(env, 6);
             let encoder = config.model.init(3, &device).expect("model").encoder;
             // A centre and a cut away from the defaults and a signed permutation, as a trained
