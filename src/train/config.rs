@@ -323,6 +323,12 @@ impl TrainConfig {
             }
             Preset::Procl => {
                 config.loss.noise_mode = NoiseMode::CleanRisk;
+                // PC3's losses leave the latent's orientation free, and PD needs each action
+                // to push its own coordinate: every 50 steps the latent is turned so its mean
+                // response to the action is most positive on the diagonal. It measures the
+                // whole rotation and does not depend on the latent's scale, as a search over
+                // signed permutations by the risk does (docs/design.md, "Orientation").
+                config.orientation_criterion = OrientationCriterion::ActionResponse;
                 config.orientation_search_every = 50;
                 config.model.encoder.keypoint_sharpness = 30.0;
             }
@@ -343,7 +349,7 @@ impl TrainConfig {
                 // Its PID acts on each latent coordinate with its own action, the
                 // correspondence the prior's diagonal `C` stands for but the ELBO barely
                 // enforces: the readout is turned by the action response, as ProCL's latent
-                // is on the reacher and Fetch (docs/design.md, "Baselines").
+                // is (docs/design.md, "Baselines").
                 config.orientation_criterion = OrientationCriterion::ActionResponse;
                 config.batch_size = NVAE_BATCH_SIZE;
                 config.steps = NVAE_STEPS;
@@ -382,7 +388,6 @@ impl TrainConfig {
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.variance_floor = Some(1.0);
             config.loss.variance_weight = 10.0;
-            config.orientation_criterion = OrientationCriterion::ActionResponse;
             config.loss.risk_latent_std = Some(1.0);
             config.loss.kp = 1.0;
             config.loss.kd = 0.2;
@@ -404,11 +409,8 @@ impl TrainConfig {
             // The paper's dt_R for Fetch is 1 (the env's control dt for the 2-D envs).
             config.loss.lyapunov_dt_s = Some(1.0);
             if preset == Preset::Procl {
-                // A signed permutation leaves Fetch's latent up to 45 degrees from the gripper
-                // axes; the action response measures and removes the whole rotation, and a
-                // larger Kd damps the orbits a slightly turned latent makes about its goal
+                // A larger Kd damps the orbits a slightly turned latent makes about its goal
                 // (docs/design.md, "Fetch").
-                config.orientation_criterion = OrientationCriterion::ActionResponse;
                 config.loss.kd = 4.0;
             }
         }
@@ -432,9 +434,6 @@ impl TrainConfig {
         let mut config = Self::preset(preset, method, env);
         config.env = None;
         config.control_dt_s = Some(control_dt_s);
-        if recipe == Recipe::Generic && config.orientation_search_every > 0 {
-            config.orientation_criterion = OrientationCriterion::ActionResponse;
-        }
         config.model.encoder.latent_dim = action_dim;
         config.model.dynamics.latent_dim = action_dim;
         if let Some(nvae) = &mut config.nvae {
@@ -730,10 +729,9 @@ mod tests {
             let reacher = TrainConfig::preset(preset, Method::Procl, EnvKind::Reacher);
             assert_eq!(reacher.loss.lyapunov_dt_s, None);
         }
-        // Fetch and the reacher (both latent methods) orient by the action response; the point
-        // mass keeps the risk search its results were measured with, and the paper preset
-        // searches nothing.
-        for env in [EnvKind::Fetch, EnvKind::Reacher] {
+        // Every procl preset, for both latent methods, orients by the action response; the
+        // paper preset searches nothing.
+        for env in [EnvKind::PointMass, EnvKind::Fetch, EnvKind::Reacher] {
             for method in [Method::Procl, Method::Pc3] {
                 let config = TrainConfig::preset(Preset::Procl, method, env);
                 assert_eq!(
@@ -747,14 +745,6 @@ mod tests {
         let reacher_pc3 = TrainConfig::preset(Preset::Procl, Method::Pc3, EnvKind::Reacher);
         assert_eq!(reacher_pc3.loss.lambda_r, 0.0);
         assert_eq!(reacher_pc3.loss.kp, 1.0);
-        let point_mass = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
-        assert_eq!(
-            (
-                point_mass.orientation_criterion,
-                point_mass.orientation_margin
-            ),
-            (OrientationCriterion::Risk, 0.1)
-        );
         let paper = TrainConfig::preset(Preset::Paper, Method::Procl, EnvKind::Fetch);
         assert_eq!(paper.orientation_search_every, 0);
         // Fetch's latent PD is damped harder than the paper's Kd = 2, for both latent methods.

@@ -136,13 +136,14 @@ fn eval_writes_the_documented_outputs() {
     let dir = tempfile::tempdir().unwrap();
     let env = EnvKind::PointMass;
     let run = tiny_procl_run(dir.path(), env, (120, 40), (2, 8, 1));
-    // The search logs every window's risk per candidate: a header, then one line per window
-    // (every step here), the step and the 8 signed permutations of a 2-D latent.
-    let windows = std::fs::read_to_string(run.dir.join("orientation_windows.csv")).unwrap();
+    // The orientation logs every window's fitted action response: a header, then one line per
+    // window (every step here): the step, the samples, the 2x2 response and its distance to
+    // the identity.
+    let windows = std::fs::read_to_string(run.dir.join("action_response.csv")).unwrap();
     let lines: Vec<&str> = windows.lines().collect();
     assert_eq!(lines.len(), 3, "{windows}");
-    assert!(lines[0].starts_with("step,c0,c1"));
-    assert!(lines[1..].iter().all(|l| l.split(',').count() == 9));
+    assert!(lines[0].starts_with("step,samples,b00"));
+    assert!(lines[1..].iter().all(|l| l.split(',').count() == 7));
     let protocol = ReachConfig {
         episodes: 2,
         horizon: 12,
