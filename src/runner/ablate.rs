@@ -28,6 +28,8 @@ use crate::losses::StepValues;
 use crate::model::cpu_device;
 use crate::train::{ConfigBase, RunPaths, TrainConfig, config_from_table, train};
 
+use super::stages::is_complete;
+
 /// A parsed grid.
 #[derive(Debug, Clone)]
 pub struct Grid {
@@ -128,6 +130,10 @@ pub struct CellResult {
     pub det: Option<f64>,
     pub oracle_success_rate: f64,
     pub train_seconds: f64,
+    /// The evaluation protocol of each task set (empty in results written before it was
+    /// kept): a result is reused only for the protocols it was evaluated on.
+    #[serde(default)]
+    pub task_sets: Vec<ReachConfig>,
 }
 
 /// What [`run_grid`] does with the grid's (cell, seed) tasks.
@@ -201,50 +207,48 @@ pub fn run_grid(
             GridWork::Task(i) => i == index,
             GridWork::ReportOnly => false,
         };
-        if !wanted || done.iter().any(|r| &r.cell == name && r.seed == *seed) {
-            continue;
-        }
         let Some((_, base_config)) = configs.iter().find(|(n, _)| n == name) else {
             continue;
         };
         let mut config = base_config.clone();
         config.seed = *seed;
         let run = RunPaths::new(task_dir(out, name, *seed));
-        let resume = run.checkpoint().exists();
-        let start = std::time::Instant::now();
-        train(
-            &config,
-            data,
-            &run,
-            resume,
-            &cpu_device(),
-            |step, values| progress(name, *seed, step, config.steps, values),
-        )?;
-        let train_seconds = start.elapsed().as_secs_f64();
-        let diagnostics = write_env_diagnostics(&run)?;
-        // The first set last, so that the run's eval.json is its report.
-        let mut reports = task_sets
-            .iter()
-            .rev()
-            .map(|set| evaluate_run(&run, set, |_| {}))
-            .collect::<Result<Vec<_>>>()?;
-        reports.reverse();
-        let mean = |value: &dyn Fn(&crate::eval::ReachReport) -> f64| {
-            reports.iter().map(value).sum::<f64>() / reports.len() as f64
+        // A run folder trained with another configuration (a cell edited since, or a preset
+        // changed) must not pass for this cell's result.
+        if run.config().exists() && run.load_config()? != config {
+            return Err(Error::config(
+                format!("cell `{name}`"),
+                format!(
+                    "{} holds a run of another configuration than the grid's cell now gives; move it away or pick another --out",
+                    run.dir.display()
+                ),
+            ));
+        }
+        let previous = done.iter().position(|r| &r.cell == name && r.seed == *seed);
+        if !wanted {
+            continue;
+        }
+        // A result evaluated on other task sets (another --episodes, --task-sets or
+        // --horizon) is evaluated again on these, from the trained run.
+        let train_seconds = match previous {
+            Some(i) if done[i].task_sets == task_sets => continue,
+            Some(i) if is_complete(&run, config.steps) => done.remove(i).train_seconds,
+            Some(_) => continue,
+            None => {
+                let resume = run.checkpoint().exists();
+                let start = std::time::Instant::now();
+                train(
+                    &config,
+                    data,
+                    &run,
+                    resume,
+                    &cpu_device(),
+                    |step, values| progress(name, *seed, step, config.steps, values),
+                )?;
+                start.elapsed().as_secs_f64()
+            }
         };
-        let success_per_task_set: Vec<f64> =
-            reports.iter().map(|r| r.methods[0].success_rate).collect();
-        let result = CellResult {
-            cell: name.clone(),
-            seed: *seed,
-            success_rate: mean(&|r| r.methods[0].success_rate),
-            success_per_task_set,
-            final_mean: mean(&|r| r.methods[0].final_mean),
-            linear_r2: diagnostics.linear_r2,
-            det: diagnostics.config_to_latent_det,
-            oracle_success_rate: mean(&|r| r.methods.get(1).map_or(f64::NAN, |m| m.success_rate)),
-            train_seconds,
-        };
+        let result = evaluate_task(&run, name, *seed, task_sets, train_seconds)?;
         crate::fsutil::write_json(&run.dir.join(TASK_RESULT), &result)?;
         if work == GridWork::TrainMissing {
             let line = serde_json::to_string(&result)
@@ -263,24 +267,62 @@ pub fn run_grid(
     Ok(done)
 }
 
+/// The diagnostics of the trained `run` and its evaluation on every protocol of `task_sets`.
+fn evaluate_task(
+    run: &RunPaths,
+    name: &str,
+    seed: u64,
+    task_sets: &[ReachConfig],
+    train_seconds: f64,
+) -> Result<CellResult> {
+    let diagnostics = write_env_diagnostics(run)?;
+    // The first set last, so that the run's eval.json is its report.
+    let mut reports = task_sets
+        .iter()
+        .rev()
+        .map(|set| evaluate_run(run, set, |_| {}))
+        .collect::<Result<Vec<_>>>()?;
+    reports.reverse();
+    let mean = |value: &dyn Fn(&crate::eval::ReachReport) -> f64| {
+        reports.iter().map(value).sum::<f64>() / reports.len() as f64
+    };
+    Ok(CellResult {
+        cell: name.to_string(),
+        seed,
+        success_rate: mean(&|r| r.methods[0].success_rate),
+        success_per_task_set: reports.iter().map(|r| r.methods[0].success_rate).collect(),
+        final_mean: mean(&|r| r.methods[0].final_mean),
+        linear_r2: diagnostics.linear_r2,
+        det: diagnostics.config_to_latent_det,
+        oracle_success_rate: mean(&|r| r.methods.get(1).map_or(f64::NAN, |m| m.success_rate)),
+        train_seconds,
+        task_sets: task_sets.to_vec(),
+    })
+}
+
 /// The run folder of cell `name`, seed `seed`.
 fn task_dir(out: &Path, name: &str, seed: u64) -> PathBuf {
     out.join(name).join(format!("seed-{seed}"))
 }
 
-/// The results already in `out`: the lines of `jsonl`, then each task's `result.json` that
-/// no line covers. A line cut short by a crash is skipped (its task's `result.json`, written
-/// atomically, still counts); a malformed `result.json` is refused by name.
+/// The results already in `out`: the lines of `jsonl` (a later line for the same task, from
+/// an evaluation on other task sets, replaces an earlier one), then each task's `result.json`
+/// that no line covers. A line cut short by a crash is skipped (its task's `result.json`,
+/// written atomically, still counts); a malformed `result.json` is refused by name.
 pub(crate) fn read_results(
     out: &Path,
     jsonl: &Path,
     tasks: &[(String, u64)],
 ) -> Result<Vec<CellResult>> {
-    let mut done: Vec<CellResult> = std::fs::read_to_string(jsonl)
+    let mut done: Vec<CellResult> = vec![];
+    for result in std::fs::read_to_string(jsonl)
         .unwrap_or_default()
         .lines()
-        .filter_map(|l| serde_json::from_str(l).ok())
-        .collect();
+        .filter_map(|l| serde_json::from_str::<CellResult>(l).ok())
+    {
+        done.retain(|r| !(r.cell == result.cell && r.seed == result.seed));
+        done.push(result);
+    }
     for (name, seed) in tasks {
         let path = task_dir(out, name, *seed).join(TASK_RESULT);
         if done.iter().any(|r| &r.cell == name && r.seed == *seed) || !path.exists() {

@@ -34,10 +34,11 @@ pub(crate) fn succeeds(args: &[&str]) -> Output {
     out
 }
 
-/// Asserts failure with a single-line error on stderr containing `needle`.
-pub(crate) fn fails_with(args: &[&str], needle: &str) {
+/// Runs procl with `args`, which must fail with one line of stderr containing `needle`;
+/// returns that line.
+pub(crate) fn fails_with(args: &[&str], needle: &str) -> String {
     let out = procl(args);
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(!out.status.success(), "{args:?} succeeded");
     assert_eq!(
         stderr.trim_end().lines().count(),
@@ -48,6 +49,7 @@ pub(crate) fn fails_with(args: &[&str], needle: &str) {
         stderr.contains(needle),
         "{args:?}: {stderr:?} lacks {needle:?}"
     );
+    stderr
 }
 
 pub(crate) fn path_str(p: &Path) -> &str {
@@ -424,9 +426,66 @@ fn ablation_evaluates_each_seed_on_every_task_set() {
     assert_eq!(report["protocol"]["seed"], 1000);
     let summary = std::fs::read_to_string(out.join("ablation.md")).unwrap();
     assert!(summary.contains("on each of 3 task sets"), "{summary}");
-    // A second seed on one set beside the reused three-set result: the summary says so.
-    let more = tiny_ablate(&["--env", "point-mass"], &grid, 2, 40, &out, &[]);
+    // A result outside the seeds asked for is reported as it was evaluated, beside a new seed
+    // on one set: the summary says so.
+    let more = tiny_ablate(
+        &["--env", "point-mass"],
+        &grid,
+        1,
+        40,
+        &out,
+        &["--seed-start", "1"],
+    );
     succeeds(&strs(&more));
     let summary = std::fs::read_to_string(out.join("ablation.md")).unwrap();
     assert!(summary.contains("on 1 to 3 task sets"), "{summary}");
+}
+
+#[test]
+fn ablation_reevaluates_results_of_other_task_sets_and_refuses_a_changed_cell() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = tiny_grid(dir.path(), "[[cell]]\nname = \"default\"\n");
+    let out = dir.path().join("grid");
+    let run = out.join("default/seed-0");
+    let modified = |file: &str| {
+        std::fs::metadata(run.join(file))
+            .unwrap()
+            .modified()
+            .unwrap()
+    };
+    let read = |file: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(run.join(file)).unwrap()).unwrap()
+    };
+    let ablate = |extra: &[&str]| tiny_ablate(&["--env", "point-mass"], &grid, 1, 40, &out, extra);
+    succeeds(&strs(&ablate(&["--task-sets", "2"])));
+    let (weights, first) = (modified("model.safetensors"), read("result.json"));
+    assert_eq!(first["task_sets"].as_array().unwrap().len(), 2);
+    // The same protocol: the result is reused as it is.
+    succeeds(&strs(&ablate(&["--task-sets", "2"])));
+    assert_eq!(read("result.json"), first);
+    // Another protocol (one task set): evaluated again from the same weights, keeping the
+    // training time, and the summary and ablation.jsonl carry the new result only.
+    succeeds(&strs(&ablate(&[])));
+    let again = read("result.json");
+    assert_eq!(modified("model.safetensors"), weights);
+    assert_eq!(again["train_seconds"], first["train_seconds"]);
+    assert_eq!(again["task_sets"].as_array().unwrap().len(), 1);
+    assert_eq!(again["success_per_task_set"].as_array().unwrap().len(), 1);
+    let summary = std::fs::read_to_string(out.join("ablation.md")).unwrap();
+    assert!(!summary.contains("task sets"), "{summary}");
+    let lines = std::fs::read_to_string(out.join("ablation.jsonl")).unwrap();
+    assert_eq!(lines.lines().count(), 2, "{lines}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    assert_eq!(report.as_array().unwrap().len(), 1);
+    assert_eq!(report[0], again);
+    // The cell edited after training: its folder is refused by name, nothing is rewritten.
+    std::fs::write(
+        &grid,
+        "[base]\nsteps = 2\nbatch_size = 8\n[[cell]]\nname = \"default\"\nlearning_rate = 0.002\n",
+    )
+    .unwrap();
+    let err = fails_with(&strs(&ablate(&[])), "cell `default`");
+    assert!(err.contains("another configuration"), "{err}");
+    assert_eq!(read("result.json"), again);
 }
