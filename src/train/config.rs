@@ -325,9 +325,10 @@ impl TrainConfig {
                 config.loss.noise_mode = NoiseMode::CleanRisk;
                 // PC3's losses leave the latent's orientation free, and PD needs each action
                 // to push its own coordinate: every 50 steps the latent is turned so its mean
-                // response to the action is most positive on the diagonal. It measures the
-                // whole rotation and does not depend on the latent's scale, as a search over
-                // signed permutations by the risk does (docs/design.md, "Orientation").
+                // response to the action is most positive on the diagonal. Unlike a search
+                // over signed permutations by the risk, it measures the whole rotation and
+                // does not depend on the latent's scale (docs/design.md, "Departures in every
+                // environment").
                 config.orientation_criterion = OrientationCriterion::ActionResponse;
                 config.orientation_search_every = 50;
                 config.model.encoder.keypoint_sharpness = 30.0;
