@@ -320,8 +320,8 @@ pub struct Encoder {
     conv2: Conv2d,
     mlp: Option<MlpHead>,
     keypoints: Option<KeypointHead>,
-    /// Orientation `Q`, a signed permutation, not trained: `h = Q head(frame)` (see
-    /// [`super::ProclModel::reorient_latent`]).
+    /// Orientation `Q`, an orthogonal map (a signed permutation under the risk search), not
+    /// trained: `h = Q head(frame)` (see [`super::ProclModel::reorient_latent`]).
     pub latent_transform: Param<Tensor<2>>,
 }
 

@@ -183,15 +183,15 @@ pub(crate) fn transform_param(du: usize, device: &Device) -> burn::module::Param
 }
 
 impl ProclModel {
-    /// The orientation `Q` of the latent (a signed permutation, row-major `du x du`):
+    /// The orientation `Q` of the latent (an orthogonal map, row-major `du x du`):
     /// `h = Q head(frame)`.
     pub fn latent_transform(&self) -> Vec<f32> {
         to_vec(self.encoder.latent_transform.val())
     }
 
-    /// Applies the signed permutation `p` (row-major `du x du`) to the latent in the encoder and
+    /// Applies the orthogonal map `p` (row-major `du x du`) to the latent in the encoder and
     /// the dynamics together: `h -> p h`. CPC, consistency and curvature are exactly invariant
-    /// to this (the dynamics MLP and the diagonal transition density work in the unpermuted
+    /// to this (the dynamics MLP and the diagonal transition density work in the unturned
     /// coordinates); the Lyapunov risk is not, which is what lets the orientation search pick
     /// the PD-controllable one of the mirror images and axis orders that gradient descent
     /// cannot move between (it would have to collapse a latent axis on the way).

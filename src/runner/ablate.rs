@@ -130,8 +130,8 @@ pub struct CellResult {
     pub det: Option<f64>,
     pub oracle_success_rate: f64,
     pub train_seconds: f64,
-    /// The evaluation protocol of each task set (empty in results written before it was
-    /// kept): a result is reused only for the protocols it was evaluated on.
+    /// The evaluation protocol of each task set (empty in results that lack the field): a
+    /// result is reused only for the protocols it was evaluated on.
     #[serde(default)]
     pub task_sets: Vec<ReachConfig>,
 }
@@ -213,13 +213,14 @@ pub fn run_grid(
         let mut config = base_config.clone();
         config.seed = *seed;
         let run = RunPaths::new(task_dir(out, name, *seed));
-        // A run folder trained with another configuration (a cell edited since, or a preset
-        // changed) must not pass for this cell's result.
-        if run.config().exists() && run.load_config()? != config {
+        // A run folder trained with another configuration (a cell or a preset edited after
+        // training) must not pass for this cell's result. A job-array task checks its own.
+        let checked = wanted || work == GridWork::ReportOnly;
+        if checked && run.config().exists() && run.load_config()? != config {
             return Err(Error::config(
                 format!("cell `{name}`"),
                 format!(
-                    "{} holds a run of another configuration than the grid's cell now gives; move it away or pick another --out",
+                    "{} holds a run of another configuration than the grid's cell gives; move it away or pick another --out",
                     run.dir.display()
                 ),
             ));
@@ -305,10 +306,11 @@ fn task_dir(out: &Path, name: &str, seed: u64) -> PathBuf {
     out.join(name).join(format!("seed-{seed}"))
 }
 
-/// The results already in `out`: the lines of `jsonl` (a later line for the same task, from
-/// an evaluation on other task sets, replaces an earlier one), then each task's `result.json`
-/// that no line covers. A line cut short by a crash is skipped (its task's `result.json`,
-/// written atomically, still counts); a malformed `result.json` is refused by name.
+/// The results already in `out`: each task's `result.json`, which holds its latest
+/// evaluation, and the lines of `jsonl` for tasks without one (results merged from elsewhere;
+/// a later line for the same task replaces an earlier one). A line cut short by a crash is
+/// skipped (its task's `result.json`, written atomically, still counts); a malformed
+/// `result.json` is refused by name.
 pub(crate) fn read_results(
     out: &Path,
     jsonl: &Path,
@@ -325,12 +327,13 @@ pub(crate) fn read_results(
     }
     for (name, seed) in tasks {
         let path = task_dir(out, name, *seed).join(TASK_RESULT);
-        if done.iter().any(|r| &r.cell == name && r.seed == *seed) || !path.exists() {
+        if !path.exists() {
             continue;
         }
         let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
         let result: CellResult = serde_json::from_str(&text)
             .map_err(|e| Error::config(path.display().to_string(), e.to_string()))?;
+        done.retain(|r| !(&r.cell == name && r.seed == *seed));
         done.push(result);
     }
     Ok(done)

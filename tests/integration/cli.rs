@@ -479,6 +479,14 @@ fn ablation_reevaluates_results_of_other_task_sets_and_refuses_a_changed_cell() 
         serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
     assert_eq!(report.as_array().unwrap().len(), 1);
     assert_eq!(report[0], again);
+    // A job-array task evaluates it again on two sets and writes only its result.json, which
+    // a report then reads over the older line of ablation.jsonl.
+    succeeds(&strs(&ablate(&["--task-index", "0", "--task-sets", "2"])));
+    succeeds(&strs(&ablate(&["--report-only"])));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    assert_eq!(report[0]["task_sets"].as_array().unwrap().len(), 2);
+    let again = read("result.json");
     // The cell edited after training: its folder is refused by name, nothing is rewritten.
     std::fs::write(
         &grid,
