@@ -225,15 +225,16 @@ pub fn run_grid(
                 ),
             ));
         }
-        let previous = done.iter().position(|r| &r.cell == name && r.seed == *seed);
         if !wanted {
             continue;
         }
         // A result evaluated on other task sets (another --episodes, --task-sets or
-        // --horizon) is evaluated again on these, from the trained run.
-        let train_seconds = match previous {
+        // --horizon) is evaluated again on these, from the trained run, whose training time
+        // and latent diagnostics stay as they were.
+        let previous = done.iter().position(|r| &r.cell == name && r.seed == *seed);
+        let trained = match previous {
             Some(i) if done[i].task_sets == task_sets => continue,
-            Some(i) if is_complete(&run, config.steps) => done.remove(i).train_seconds,
+            Some(i) if is_complete(&run, config.steps) => Trained::from(done.remove(i)),
             Some(_) => continue,
             None => {
                 let resume = run.checkpoint().exists();
@@ -246,10 +247,16 @@ pub fn run_grid(
                     &cpu_device(),
                     |step, values| progress(name, *seed, step, config.steps, values),
                 )?;
-                start.elapsed().as_secs_f64()
+                let train_seconds = start.elapsed().as_secs_f64();
+                let diagnostics = write_env_diagnostics(&run)?;
+                Trained {
+                    train_seconds,
+                    linear_r2: diagnostics.linear_r2,
+                    det: diagnostics.config_to_latent_det,
+                }
             }
         };
-        let result = evaluate_task(&run, name, *seed, task_sets, train_seconds)?;
+        let result = evaluate_task(&run, name, *seed, task_sets, trained)?;
         crate::fsutil::write_json(&run.dir.join(TASK_RESULT), &result)?;
         if work == GridWork::TrainMissing {
             let line = serde_json::to_string(&result)
@@ -268,15 +275,31 @@ pub fn run_grid(
     Ok(done)
 }
 
-/// The diagnostics of the trained `run` and its evaluation on every protocol of `task_sets`.
+/// What a trained run's result keeps whatever it is evaluated on.
+struct Trained {
+    train_seconds: f64,
+    linear_r2: f64,
+    det: Option<f64>,
+}
+
+impl From<CellResult> for Trained {
+    fn from(result: CellResult) -> Self {
+        Self {
+            train_seconds: result.train_seconds,
+            linear_r2: result.linear_r2,
+            det: result.det,
+        }
+    }
+}
+
+/// The result of the `trained` run evaluated on every protocol of `task_sets`.
 fn evaluate_task(
     run: &RunPaths,
     name: &str,
     seed: u64,
     task_sets: &[ReachConfig],
-    train_seconds: f64,
+    trained: Trained,
 ) -> Result<CellResult> {
-    let diagnostics = write_env_diagnostics(run)?;
     // The first set last, so that the run's eval.json is its report.
     let mut reports = task_sets
         .iter()
@@ -293,10 +316,10 @@ fn evaluate_task(
         success_rate: mean(&|r| r.methods[0].success_rate),
         success_per_task_set: reports.iter().map(|r| r.methods[0].success_rate).collect(),
         final_mean: mean(&|r| r.methods[0].final_mean),
-        linear_r2: diagnostics.linear_r2,
-        det: diagnostics.config_to_latent_det,
+        linear_r2: trained.linear_r2,
+        det: trained.det,
         oracle_success_rate: mean(&|r| r.methods.get(1).map_or(f64::NAN, |m| m.success_rate)),
-        train_seconds,
+        train_seconds: trained.train_seconds,
         task_sets: task_sets.to_vec(),
     })
 }
@@ -368,8 +391,8 @@ fn write_summary(
         }
         let n = rows.len() as f64;
         let mean = |f: &dyn Fn(&CellResult) -> f64| rows.iter().map(|r| f(r)).sum::<f64>() / n;
-        // Each seed's success on every task set (results from before task sets were
-        // recorded carry only their mean).
+        // Each seed's success on every task set (a result without per-set figures carries
+        // only its mean).
         let each = || {
             rows.iter()
                 .flat_map(|r| match r.success_per_task_set.as_slice() {
