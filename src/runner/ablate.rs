@@ -172,9 +172,9 @@ pub fn run_grid(
     mut log: impl FnMut(&CellResult),
     mut progress: impl FnMut(&str, u64, u64, u64, &StepValues),
 ) -> Result<Vec<CellResult>> {
-    let Some(protocol) = task_sets.first() else {
+    if task_sets.is_empty() {
         return Err(Error::config("task-sets", "must be at least 1"));
-    };
+    }
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     // Training every task writes the grid's folder; one task writes its run folder only, and a
     // report from what is there only reads.
@@ -225,17 +225,41 @@ pub fn run_grid(
                 ),
             ));
         }
+        // A result evaluated on other task sets (another --episodes, --task-sets or
+        // --horizon) is evaluated again on these, from the trained run, whose training time
+        // and latent diagnostics stay as they were. Where that cannot happen it is refused:
+        // reported as it is, it would pass for a result of the protocol the report states.
+        let previous = done.iter().position(|r| &r.cell == name && r.seed == *seed);
+        let other_protocol = previous.filter(|&i| done[i].task_sets != task_sets);
+        if let Some(i) = other_protocol
+            && (work == GridWork::ReportOnly || wanted)
+            && !(wanted && is_complete(&run, config.steps))
+        {
+            let remedy = if wanted {
+                format!(
+                    "{} holds no complete run to evaluate it again on these; pass the protocol it \
+                     was evaluated on, or remove the result from its result.json and {} to train \
+                     it again",
+                    run.dir.display(),
+                    jsonl.display()
+                )
+            } else {
+                "run without --report-only to evaluate it again on these".to_string()
+            };
+            return Err(Error::config(
+                format!("cell `{name}` seed {seed}"),
+                format!(
+                    "its result was evaluated on {}, not on these task sets; {remedy}",
+                    describe_task_sets(&done[i].task_sets)
+                ),
+            ));
+        }
         if !wanted {
             continue;
         }
-        // A result evaluated on other task sets (another --episodes, --task-sets or
-        // --horizon) is evaluated again on these, from the trained run, whose training time
-        // and latent diagnostics stay as they were.
-        let previous = done.iter().position(|r| &r.cell == name && r.seed == *seed);
         let trained = match previous {
-            Some(i) if done[i].task_sets == task_sets => continue,
-            Some(i) if is_complete(&run, config.steps) => Trained::from(done.remove(i)),
-            Some(_) => continue,
+            Some(_) if other_protocol.is_none() => continue,
+            Some(i) => Trained::from(done.remove(i)),
             None => {
                 let resume = run.checkpoint().exists();
                 let start = std::time::Instant::now();
@@ -270,7 +294,7 @@ pub fn run_grid(
     done.retain(|r| order.contains(&&r.cell));
     done.sort_by_key(|r| (order.iter().position(|n| *n == &r.cell), r.seed));
     if !matches!(work, GridWork::Task(_)) {
-        write_summary(out, &done, &order, protocol)?;
+        write_summary(out, &done, &order, task_sets)?;
     }
     Ok(done)
 }
@@ -324,6 +348,20 @@ fn evaluate_task(
     })
 }
 
+/// How a result's task sets read in a message: "2 sets of 200 episodes of 500 steps".
+fn describe_task_sets(sets: &[ReachConfig]) -> String {
+    match sets.first() {
+        None => "task sets it does not record".to_string(),
+        Some(first) => format!(
+            "{} set{} of {} episodes of {} steps",
+            sets.len(),
+            if sets.len() == 1 { "" } else { "s" },
+            first.episodes,
+            first.horizon
+        ),
+    }
+}
+
 /// The run folder of cell `name`, seed `seed`.
 fn task_dir(out: &Path, name: &str, seed: u64) -> PathBuf {
     out.join(name).join(format!("seed-{seed}"))
@@ -366,18 +404,17 @@ fn write_summary(
     out: &Path,
     results: &[CellResult],
     order: &[&String],
-    protocol: &ReachConfig,
+    task_sets: &[ReachConfig],
 ) -> Result<PathBuf> {
+    let Some(protocol) = task_sets.first() else {
+        return Err(Error::config("task-sets", "must be at least 1"));
+    };
     let json_path = out.join("ablation.json");
     crate::fsutil::write_json(&json_path, results)?;
-    // Read from the results, not the command line: results already in the folder are reused
-    // whatever `--task-sets` their run had.
-    let set_counts = results.iter().map(|r| r.success_per_task_set.len().max(1));
-    let (fewest, most) = set_counts.fold((usize::MAX, 0), |(lo, hi), n| (lo.min(n), hi.max(n)));
-    let sets = match (fewest, most) {
-        (_, 0 | 1) => String::new(),
-        (lo, hi) if lo == hi => format!(" on each of {hi} task sets; min-max over seeds and sets"),
-        (lo, hi) => format!(" on {lo} to {hi} task sets; min-max over seeds and sets"),
+    // Every result here was evaluated on `task_sets` (others are evaluated again or refused).
+    let sets = match task_sets.len() {
+        0 | 1 => String::new(),
+        n => format!(" on each of {n} task sets; min-max over seeds and sets"),
     };
     let mut md = format!(
         "# Ablation\n\n{} episodes per seed{sets}, {} steps, success = final distance < {} {}.\n\n\

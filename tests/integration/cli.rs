@@ -482,11 +482,21 @@ fn ablation_reevaluates_results_of_other_task_sets_and_refuses_a_changed_cell() 
     // A job-array task evaluates it again on two sets and writes only its result.json, which
     // a report then reads over the older line of ablation.jsonl.
     succeeds(&strs(&ablate(&["--task-index", "0", "--task-sets", "2"])));
-    succeeds(&strs(&ablate(&["--report-only"])));
+    succeeds(&strs(&ablate(&["--report-only", "--task-sets", "2"])));
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
     assert_eq!(report[0]["task_sets"].as_array().unwrap().len(), 2);
     let again = read("result.json");
+    // A report of another protocol than its results' is refused, not headed with the wrong
+    // protocol; so is a result of another protocol whose run cannot be evaluated again.
+    let err = fails_with(&strs(&ablate(&["--report-only"])), "cell `default` seed 0");
+    assert!(err.contains("2 sets of"), "{err}");
+    let weights = std::fs::read(run.join("model.safetensors")).unwrap();
+    std::fs::remove_file(run.join("model.safetensors")).unwrap();
+    let err = fails_with(&strs(&ablate(&[])), "cell `default` seed 0");
+    assert!(err.contains("no complete run"), "{err}");
+    assert_eq!(read("result.json"), again);
+    std::fs::write(run.join("model.safetensors"), weights).unwrap();
     // The cell edited after training: its folder is refused by name, nothing is rewritten.
     std::fs::write(
         &grid,
