@@ -90,18 +90,6 @@ pub struct EncoderConfig {
     /// there; faded, its angle goes to 0 from both sides and stays continuous.
     #[serde(default)]
     pub polar_cut_fade_deg: f64,
-    /// Polar heads: read each keypoint's expected distance from the centre (false: the radius
-    /// features are 0, and only angles reach the head).
-    #[serde(default = "default_true", skip_serializing_if = "is_true")]
-    pub polar_radii: bool,
-}
-
-fn default_true() -> bool {
-    true
-}
-
-fn is_true(value: &bool) -> bool {
-    *value
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -133,7 +121,6 @@ impl EncoderConfig {
             trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
             polar_cut_fade_deg: 0.0,
-            polar_radii: true,
         }
     }
 
@@ -261,7 +248,6 @@ impl EncoderConfig {
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
                         cut_fade_rad: self.polar_cut_fade_deg.to_radians(),
-                        radii: self.polar_radii,
                         pairwise_angles,
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
@@ -299,8 +285,6 @@ pub struct KeypointHead {
     pairwise_angles: bool,
     /// Width of the polar angle's fade before the cut, radians (0: none).
     cut_fade_rad: f64,
-    /// Polar heads read the keypoints' radii (false: radius features are 0).
-    radii: bool,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -642,7 +626,6 @@ impl KeypointHead {
                 let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
                 let (x, y) = (grid_x.clone(), grid_y.clone());
                 let (angle, radius) = polar_grid(x, y, cos_m, sin_m, self.cut_fade_rad);
-                let radius = if self.radii { radius } else { radius * 0.0 };
                 [angle, radius]
             }
             None => [grid_x.clone(), grid_y.clone()],
