@@ -51,11 +51,8 @@ class Encoder(nn.Module):
         self.register_buffer("grid_x", gx)
         self.register_buffer("grid_y", gy)
         self.register_buffer("transform", torch.eye(du))
-        cut_fade = math.radians(15.0)
         r2 = gx**2 + gy**2
-        angle = torch.atan2(gy, gx)
-        angle = angle * ((math.pi - angle.abs()) / cut_fade).clamp(0.0, 1.0)
-        self.register_buffer("angle", angle * r2 / (r2 + FADE_RADIUS**2))
+        self.register_buffer("angle", torch.atan2(gy, gx) * r2 / (r2 + FADE_RADIUS**2))
         self.register_buffer("radius", r2.sqrt())
         pairs = torch.triu_indices(keypoints, keypoints, 1)
         self.register_buffer("upper", pairs[0] * keypoints + pairs[1])

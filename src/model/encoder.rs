@@ -84,12 +84,6 @@ pub struct EncoderConfig {
     /// mix of them already curls the shoulder round an arc at step 1, a shape training keeps.
     #[serde(default = "default_pairwise_init_scale")]
     pub pairwise_init_scale: f64,
-    /// Polar heads: each cell's angle fades linearly to 0 over this many degrees before the cut
-    /// (0: no fade, a jump of 2 pi at the cut). The cut sits in the shoulder's unreachable gap,
-    /// but the reacher's forearm and fingertip cross it, and a keypoint attending to them jumps
-    /// there; faded, its angle goes to 0 from both sides and stays continuous.
-    #[serde(default)]
-    pub polar_cut_fade_deg: f64,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -120,7 +114,6 @@ impl EncoderConfig {
             init_latent_std: None,
             trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
-            polar_cut_fade_deg: 0.0,
         }
     }
 
@@ -145,14 +138,6 @@ impl EncoderConfig {
     }
 
     pub(crate) fn validate(&self) -> Result<()> {
-        if !(self.polar_cut_fade_deg.is_finite()
-            && (0.0..=180.0).contains(&self.polar_cut_fade_deg))
-        {
-            return Err(Error::config(
-                "model.encoder.polar_cut_fade_deg",
-                format!("{} must be in [0, 180]", self.polar_cut_fade_deg),
-            ));
-        }
         if !(self.pairwise_init_scale.is_finite() && self.pairwise_init_scale >= 0.0) {
             return Err(Error::config(
                 "model.encoder.pairwise_init_scale",
@@ -247,7 +232,6 @@ impl EncoderConfig {
                             device,
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
-                        cut_fade_rad: self.polar_cut_fade_deg.to_radians(),
                         pairwise_angles,
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
@@ -283,8 +267,6 @@ pub struct KeypointHead {
     features: Conv2d,
     /// Polar keypoints followed by the angle between each pair of them: `K (K - 1) / 2` more.
     pairwise_angles: bool,
-    /// Width of the polar angle's fade before the cut, radians (0: none).
-    cut_fade_rad: f64,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -625,7 +607,7 @@ impl KeypointHead {
                 let cos_m = axis.clone().slice(0..1).reshape([1, 1, 1]);
                 let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
                 let (x, y) = (grid_x.clone(), grid_y.clone());
-                let (angle, radius) = polar_grid(x, y, cos_m, sin_m, self.cut_fade_rad);
+                let (angle, radius) = polar_grid(x, y, cos_m, sin_m);
                 [angle, radius]
             }
             None => [grid_x.clone(), grid_y.clone()],
@@ -695,30 +677,20 @@ fn standardise_columns(layer: &mut Linear, mean: Tensor<2>, scale: Tensor<2>) {
 /// angle from the axis `(cos m, sin m)` and its distance from the centre. The axis is
 /// `[1, 1, 1]`, or `[n, 1, 1]` for one axis per sample (the angle is then `[n, 1, cells]`).
 /// Angles are in `(-pi, pi]`, faded to 0 within [`POLAR_FADE_RADIUS`] of the centre, where the
-/// angle is undefined. The expected angle under a
-/// keypoint's attention then grows with the angle of what it attends to, with no jump unless
-/// that crosses the cut opposite `axis`; with `cut_fade > 0` the angle also fades linearly to 0
-/// over the last `cut_fade` radians before the cut, so it does not jump there either.
+/// angle is undefined. The expected angle under a keypoint's attention then grows with the
+/// angle of what it attends to, with no jump unless that crosses the cut opposite `axis`.
 fn polar_grid(
     x: Tensor<3>,
     y: Tensor<3>,
     cos_m: Tensor<3>,
     sin_m: Tensor<3>,
-    cut_fade: f64,
 ) -> (Tensor<3>, Tensor<3>) {
     // Rotate by -m so the axis lies along +x and the cut along -x, where atan2 jumps.
     let along = x.clone() * cos_m.clone() + y.clone() * sin_m.clone();
     let across = y * cos_m - x * sin_m;
     let r_squared = along.clone().powi_scalar(2) + across.clone().powi_scalar(2);
     let fade = r_squared.clone() / (r_squared.clone() + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
-    let angle = across.atan2(along);
-    let angle = if cut_fade > 0.0 {
-        let to_cut = angle.clone().abs().neg().add_scalar(std::f64::consts::PI);
-        angle * (to_cut / cut_fade).clamp(0.0, 1.0)
-    } else {
-        angle
-    };
-    (angle * fade, r_squared.sqrt())
+    (across.atan2(along) * fade, r_squared.sqrt())
 }
 
 /// Expected keypoint positions `x, y` (`[n, K, 1]` each, about the polar centre) -> the angle
@@ -935,7 +907,7 @@ mod tests {
         let one = |v: f32| Tensor::<3>::from_data(TensorData::new(vec![v], [1, 1, 1]), &device);
         let axis = |[c, s]: [f32; 2]| (one(c), one(s));
         let (c, s) = axis([1.0, 0.0]);
-        let (angle, radius) = polar_grid(x.clone(), y.clone(), c, s, 0.0);
+        let (angle, radius) = polar_grid(x.clone(), y.clone(), c, s);
         let (angle, radius) = (to_vec(angle), to_vec(radius));
         let pi = std::f32::consts::PI;
         for (got, want) in angle.iter().zip([0.0, pi / 2.0 * fade, -pi * fade, 0.0]) {
@@ -947,21 +919,10 @@ mod tests {
         // With the axis along +y the cut moves to -y: the point along +x is now at -pi/2 and
         // the one near -x at +pi/2, continuous across the old cut.
         let (c, s) = axis([0.0, 1.0]);
-        let (angle, _) = polar_grid(x.clone(), y.clone(), c, s, 0.0);
+        let (angle, _) = polar_grid(x, y, c, s);
         let angle = to_vec(angle);
         assert!((angle[0] + pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
         assert!((angle[2] - pi / 2.0 * fade).abs() < 0.01, "{angle:?}");
-        // A fade of 1 rad before the cut: the point just past -x (0.002 rad from the cut)
-        // nearly vanishes, the quarter turns (pi/2 from the cut) stay whole.
-        let (c, s) = axis([1.0, 0.0]);
-        let (angle, _) = polar_grid(x, y, c, s, 1.0);
-        let angle = to_vec(angle);
-        for (got, want) in angle
-            .iter()
-            .zip([0.0, pi / 2.0 * fade, -0.002 * pi * fade, 0.0])
-        {
-            assert!((got - want).abs() < 0.01, "{angle:?}");
-        }
     }
 
     #[test]

@@ -785,7 +785,10 @@ mod tests {
             // Each parameter's gradient is held to the relative error 1e-5 in norm, and each
             // entry to 1e-4 of the largest. The bias of the keypoint maps has an exact gradient
             // of 0 (a softmax ignores a constant added to its logits), which both compute as
-            // rounding noise: it is held to the norm of the encoder's whole gradient instead.
+            // rounding noise: it is held to the norm of the encoder's whole gradient instead. A
+            // gradient that is a small part of the whole (the keypoints' sharpness: the
+            // attention's covariance of logits and features, whose terms nearly cancel) is held
+            // to a hundredth of that norm, above its own rounding noise.
             let norm = |v: &[f32]| v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>().sqrt();
             let overall = norm(&want.values().flatten().copied().collect::<Vec<_>>());
             for (path, want) in &want {
@@ -793,7 +796,7 @@ mod tests {
                 let scale = if path == "keypoints.features.bias" {
                     overall
                 } else {
-                    norm(want)
+                    norm(want).max(1e-2 * overall)
                 };
                 assert!(scale > 0.0, "{env} {preset:?} {path}: no gradient");
                 let diff: Vec<f32> = got.iter().zip(want).map(|(a, b)| a - b).collect();

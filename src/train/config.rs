@@ -373,7 +373,7 @@ impl TrainConfig {
         if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
             // The shoulder is a revolute joint: polar keypoints about it (the hub the frames
             // turn about, placed before training by `Encoder::place_polar_frame`),
-            // the angles between keypoints (entering from 0, faded at the angle cut) over 32x32
+            // the angles between keypoints (entering from 0) over 32x32
             // cells, a tanh layer, a latent started at unit spread and held there by a variance
             // floor, orientation by the action response, and the risk on the standardised latent
             // with gains matched to that scale (docs/design.md, "Reacher").
@@ -384,7 +384,6 @@ impl TrainConfig {
                 pairwise_angles: true,
             };
             config.model.encoder.pairwise_init_scale = 0.0;
-            config.model.encoder.polar_cut_fade_deg = 15.0;
             config.model.encoder.trunk_second_stride = 1;
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.variance_floor = Some(1.0);
