@@ -148,11 +148,11 @@ def sign_term(response, regressors, h, regions, floor):
 PRESETS = {
     # point mass: Cartesian keypoints over 16x16 cells, linear head, paper gains.
     "point-mass": dict(second_stride=2, polar=False, pairwise=False, hidden=0, kp=10.0,
-                       kd=2.0, q_v=0.1, lambda_r=10.0, ahead=0, floor=None, std_c=None),
+                       kd=2.0, q_v=0.1, lambda_r=10.0, ahead=0, std_c=None),
     # reacher: polar keypoints with their pairwise angles over 32x32 cells, tanh head, the
-    # standardised risk, the variance floor and the sign term (5 steps ahead, 6 groups).
+    # standardised risk and the sign term (5 steps ahead, 6 groups).
     "reacher": dict(second_stride=1, polar=True, pairwise=True, hidden=32, kp=1.0, kd=0.2,
-                    q_v=0.0, lambda_r=1.0, ahead=5, floor=1.0, std_c=1.0),
+                    q_v=0.0, lambda_r=1.0, ahead=5, std_c=1.0),
 }
 
 
@@ -190,9 +190,6 @@ def train_step(enc, dyn, opt, frames, u, drive, cfg, n, du):
 
     risk = F.relu((lyap(h_after, v_after) - lyap(h_r, v_r)) / DT).mean()
     total = cpc + cons + 10.0 * curv + cfg["lambda_r"] * risk
-    if cfg["floor"] is not None:
-        std = (h_now.var(0, unbiased=False) + 1e-12).sqrt()
-        total = total + 10.0 * F.relu(cfg["floor"] - std).mean()
     if cfg["ahead"]:
         h_ahead = h[3 * n :]
         response = h_ahead - h_now

@@ -9,7 +9,7 @@ mod regularisers;
 pub(crate) use lyapunov::risk_scale;
 pub use lyapunov::{hindsight_targets, lyapunov_risk};
 pub use pc3::{consistency_loss, cpc_loss, curvature_loss, pairwise_gaussian_log_density};
-pub use regularisers::{action_response_sign, variance_hinge};
+pub use regularisers::action_response_sign;
 
 use burn::tensor::Tensor;
 
@@ -49,12 +49,6 @@ pub struct LossConfig {
     pub q_v: f64,
     /// `dt_R` of the finite-difference Lie derivative, seconds (`None`: the env's control dt).
     pub lyapunov_dt_s: Option<f64>,
-    /// Variance floor against collapse (VICReg-style): adds
-    /// `variance_weight * mean_j max(0, floor - std_j(h))` over the batch's `h_t` (`None`: off,
-    /// the paper). The Lyapunov risk is smallest for a collapsed latent; where no
-    /// PD-consistent latent is close (the reacher), it shrinks `h` instead of reshaping it.
-    #[serde(default)]
-    pub variance_floor: Option<f64>,
     /// Compute the Lyapunov risk on the batch-standardised latent `c h / std(h)` (per
     /// dimension, batch std of `h_t`, gradient through the std) with `c` this value (`None`: on
     /// `h` as it is, the paper). The risk then cannot be lowered by shrinking the latent, and
@@ -63,8 +57,6 @@ pub struct LossConfig {
     /// file `0` means off (the way to undo a preset that sets it).
     #[serde(default, deserialize_with = "zero_is_none")]
     pub risk_latent_std: Option<f64>,
-    #[serde(default = "default_variance_weight")]
-    pub variance_weight: f64,
     /// Steps `k` over which the sign term reads the latent's response to the action (1: the
     /// second difference of one step). One step's action moves a slow latent little against
     /// frame-to-frame jitter; over `k` steps the response
@@ -110,10 +102,6 @@ fn default_action_response_regions() -> usize {
     3
 }
 
-fn default_variance_weight() -> f64 {
-    10.0
-}
-
 /// Reads an optional number where `0` (like a missing value) means off.
 fn zero_is_none<'de, D: serde::Deserializer<'de>>(
     deserializer: D,
@@ -138,8 +126,6 @@ impl Default for LossConfig {
             q_h: 1.0,
             q_v: 0.1,
             lyapunov_dt_s: None,
-            variance_floor: None,
-            variance_weight: default_variance_weight(),
             risk_latent_std: None,
             action_response_horizon: default_action_response_horizon(),
             action_response_velocity: false,
@@ -179,8 +165,6 @@ impl LossConfig {
             ("loss.kd", self.kd),
             ("loss.q_h", self.q_h),
             ("loss.q_v", self.q_v),
-            ("loss.variance_weight", self.variance_weight),
-            ("loss.variance_floor", self.variance_floor.unwrap_or(0.0)),
             (
                 "loss.action_response_sign_weight",
                 self.action_response_sign_weight,
@@ -268,15 +252,13 @@ pub struct LossTerms {
     pub cons: Tensor<1>,
     pub curv: Tensor<1>,
     pub lyap: Tensor<1>,
-    /// The latent's variance hinge (`loss.variance_floor`).
-    pub var: Tensor<1>,
     /// The sign term (`loss.action_response_sign_weight`).
     pub sign: Tensor<1>,
     pub total: Tensor<1>,
 }
 
 /// Names of the logged terms, in [`LossValues::as_array`] order (metrics.csv's columns).
-pub const LOSS_NAMES: [&str; 7] = ["total", "cpc", "cons", "curv", "lyap", "var", "sign"];
+pub const LOSS_NAMES: [&str; 6] = ["total", "cpc", "cons", "curv", "lyap", "sign"];
 
 /// Loss values read back to the host, for logging.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -286,14 +268,13 @@ pub struct LossValues {
     pub cons: f64,
     pub curv: f64,
     pub lyap: f64,
-    pub var: f64,
     pub sign: f64,
 }
 
 impl LossValues {
-    pub fn as_array(&self) -> [f64; 7] {
+    pub fn as_array(&self) -> [f64; 6] {
         [
-            self.total, self.cpc, self.cons, self.curv, self.lyap, self.var, self.sign,
+            self.total, self.cpc, self.cons, self.curv, self.lyap, self.sign,
         ]
     }
     pub fn is_finite(&self) -> bool {
@@ -310,7 +291,6 @@ impl LossTerms {
             &self.cons,
             &self.curv,
             &self.lyap,
-            &self.var,
             &self.sign,
         ]);
         LossValues {
@@ -319,8 +299,7 @@ impl LossTerms {
             cons: v[2],
             curv: v[3],
             lyap: v[4],
-            var: v[5],
-            sign: v[6],
+            sign: v[5],
         }
     }
 }
@@ -424,8 +403,6 @@ pub fn procl_loss(
         permutation,
         ahead,
     } = inputs;
-    let h_now_for_variance = h_now.clone();
-    let device = h_now.device();
     let sign = sign_term(
         config,
         h_prev.clone(),
@@ -500,20 +477,14 @@ pub fn procl_loss(
     let pc3 = cpc.clone() * config.lambda_cpc
         + cons.clone() * config.lambda_cons
         + curv.clone() * config.lambda_curv;
-    let var = match config.variance_floor {
-        Some(floor) => variance_hinge(h_now_for_variance, floor),
-        None => Tensor::zeros([1], &device),
-    };
     let total = pc3 * config.lambda_pc3
         + lyap.clone() * config.lambda_r
-        + var.clone() * config.variance_weight
         + sign.clone() * config.action_response_sign_weight;
     LossTerms {
         cpc,
         cons,
         curv,
         lyap,
-        var,
         sign,
         total,
     }

@@ -5,13 +5,6 @@
 use burn::tensor::activation::relu;
 use burn::tensor::{Tensor, TensorData};
 
-/// `mean_j max(0, floor - std_j(h))` over the columns of `h [n, du]`.
-pub fn variance_hinge(h: Tensor<2>, floor: f64) -> Tensor<1> {
-    relu(batch_std(h).neg().add_scalar(floor))
-        .mean()
-        .reshape([1])
-}
-
 /// Per-dimension population std over the batch, `[n, du] -> [1, du]` (a tiny floor under the
 /// variance keeps the gradient of a collapsed dimension finite).
 pub(super) fn batch_std(h: Tensor<2>) -> Tensor<2> {
@@ -195,17 +188,6 @@ mod tests {
     use super::*;
     use crate::losses::test_support::{scalar, t2};
     use crate::model::{cpu_device, to_vec};
-
-    #[test]
-    fn variance_hinge_is_zero_above_the_floor_and_linear_below() {
-        let device = cpu_device();
-        // Columns: [0, 2] has std 1 (population), [0, 0.5] has std 0.25.
-        let h = t2(&[0.0, 0.0, 2.0, 0.5], 2, 2, &device);
-        // floor 1: max(0, 1 - 1) = 0 and 1 - 0.25 = 0.75 -> mean 0.375.
-        assert!((scalar(variance_hinge(h.clone(), 1.0)) - 0.375).abs() < 1e-5);
-        // floor 0.2: both columns above.
-        assert!(scalar(variance_hinge(h, 0.2)).abs() < 1e-6);
-    }
 
     /// Three groups of 4 samples along a line in `h` (turned by `(c, s)`), each with the
     /// actions (1,0), (0,1), (-1,0), (0,-1) (so `x^T x = 2 I` per group), responding by

@@ -411,10 +411,15 @@ fn write_summary(
     };
     let json_path = out.join("ablation.json");
     crate::fsutil::write_json(&json_path, results)?;
-    // Every result here was evaluated on `task_sets` (others are evaluated again or refused).
-    let sets = match task_sets.len() {
-        0 | 1 => String::new(),
-        n => format!(" on each of {n} task sets; min-max over seeds and sets"),
+    // Read from the results, not the command line: the seeds asked for were evaluated on
+    // `task_sets` (or refused), but results of other seeds in the folder are reported as they
+    // were evaluated.
+    let set_counts = results.iter().map(|r| r.success_per_task_set.len().max(1));
+    let (fewest, most) = set_counts.fold((usize::MAX, 0), |(lo, hi), n| (lo.min(n), hi.max(n)));
+    let sets = match (fewest, most) {
+        (_, 0 | 1) => String::new(),
+        (lo, hi) if lo == hi => format!(" on each of {hi} task sets; min-max over seeds and sets"),
+        (lo, hi) => format!(" on {lo} to {hi} task sets; min-max over seeds and sets"),
     };
     let mut md = format!(
         "# Ablation\n\n{} episodes per seed{sets}, {} steps, success = final distance < {} {}.\n\n\

@@ -227,8 +227,6 @@ mod tests {
         config.batch_size = 24;
         config.loss.action_response_horizon = 3;
         config.loss.action_response_regions = 3;
-        // A floor above any fresh latent's spread, so the hinge is logged above 0.
-        config.loss.variance_floor = Some(100.0);
         let device = crate::model::cpu_device();
         let model = config.model.init(7, &device).expect("model");
         let (inputs, _) = loss_inputs(&model, &data, &config, 0, &device);
@@ -243,26 +241,21 @@ mod tests {
             + loss.lambda_curv * term("curv");
         let recombined = loss.lambda_pc3 * pc3
             + loss.lambda_r * term("lyap")
-            + loss.variance_weight * term("var")
             + loss.action_response_sign_weight * term("sign");
         assert!(
             (recombined - values.total()).abs() <= 1e-4 * values.total().abs().max(1.0),
             "{values}: recombined {recombined}"
         );
-        assert!(term("var") > 1.0, "{values}");
         assert!(term("sign") >= 0.0, "{values}");
 
         // Switched off, a term is logged as 0 and the header keeps its column.
         config.loss.action_response_sign_weight = 0.0;
-        config.loss.variance_floor = None;
         let (inputs, _) = loss_inputs(&model, &data, &config, 0, &device);
         assert!(inputs.ahead.is_none());
         let off: StepValues = procl_loss(&config.loss, &model.dynamics, inputs, dt)
             .values()
             .into();
-        for name in ["var", "sign"] {
-            assert_eq!(off.get(name), Some(0.0), "{off}");
-        }
+        assert_eq!(off.get("sign"), Some(0.0), "{off}");
         assert_eq!(off.names, &LOSS_NAMES);
     }
 }

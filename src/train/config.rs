@@ -373,10 +373,10 @@ impl TrainConfig {
         if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
             // The shoulder is a revolute joint: polar keypoints about it (the hub the frames
             // turn about, placed before training by `Encoder::place_polar_frame`),
-            // the angles between keypoints (entering from 0) over 32x32
-            // cells, a tanh layer, a latent started at unit spread and held there by a variance
-            // floor, orientation by the action response, and the risk on the standardised latent
-            // with gains matched to that scale (docs/design.md, "Reacher").
+            // the angles between keypoints (entering from 0) over 32x32 cells, a tanh layer, a
+            // latent started at unit spread, orientation by the action response, and the risk
+            // on the standardised latent with gains matched to that scale (docs/design.md,
+            // "Reacher").
             config.model.encoder.head = EncoderHead::SoftArgmax {
                 keypoints: 16,
                 hidden: 32,
@@ -386,8 +386,6 @@ impl TrainConfig {
             config.model.encoder.pairwise_init_scale = 0.0;
             config.model.encoder.trunk_second_stride = 1;
             config.model.encoder.init_latent_std = Some(1.0);
-            config.loss.variance_floor = Some(1.0);
-            config.loss.variance_weight = 10.0;
             config.loss.risk_latent_std = Some(1.0);
             config.loss.kp = 1.0;
             config.loss.kd = 0.2;

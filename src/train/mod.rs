@@ -495,13 +495,13 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text,
-            "step,total,cpc,cons,curv,lyap,var,sign,seconds\n\
-             1,5,1,2,0,0.5,,,1.5\n2,4,1,1.5,0,0.4,,,3\n"
+            "step,total,cpc,cons,curv,lyap,sign,seconds\n\
+             1,5,1,2,0,0.5,,1.5\n2,4,1,1.5,0,0.4,,3\n"
         );
         // Under the current header rows are kept as they are.
         truncate_metrics(&path, 1, &header).expect("truncate again");
         let text = std::fs::read_to_string(&path).expect("read");
-        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,,1.5\n"));
+        assert_eq!(text, format!("{header}\n1,5,1,2,0,0.5,,1.5\n"));
     }
 
     #[test]

@@ -183,13 +183,16 @@ impl RunPaths {
 }
 
 /// Options a `config.json` may still hold from a procl that had them, each with the value that
-/// meant "off" (`None`: any value, a setting of a term that is off unless its weight is set).
+/// meant "off" besides `null` (`None`: any value, a setting of a term that is off unless its
+/// weight is set).
 const RETIRED_OPTIONS: &[(&str, Option<&str>)] = &[
     ("risk_warmup_steps", Some("0")),
     ("batch_group_size", Some("1")),
     ("batch_group_window", None),
     ("loss.detach_targets", Some("false")),
     ("loss.normalise_risk", Some("false")),
+    ("loss.variance_floor", Some("0.0")),
+    ("loss.variance_weight", None),
     ("loss.variance_axes", Some("\"coordinates\"")),
     ("loss.decorrelation_weight", Some("0.0")),
     ("loss.action_response_weight", Some("0.0")),
@@ -232,11 +235,13 @@ fn drop_retired_options(config: &mut serde_json::Value) -> std::result::Result<(
         let Some(value) = map.get(key) else {
             continue;
         };
-        let is_off = off.is_none_or(|off| {
-            serde_json::from_str::<serde_json::Value>(off).is_ok_and(|off| {
-                off == *value || (off.as_f64().is_some() && off.as_f64() == value.as_f64())
-            })
-        });
+        // An unset optional option (`null`) is off whatever its "off" value.
+        let is_off = value.is_null()
+            || off.is_none_or(|off| {
+                serde_json::from_str::<serde_json::Value>(off).is_ok_and(|off| {
+                    off == *value || (off.as_f64().is_some() && off.as_f64() == value.as_f64())
+                })
+            });
         if !is_off {
             return Err((*path).to_string());
         }

@@ -53,12 +53,12 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<f64>> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
-        Some("step,total,cpc,cons,curv,lyap,var,sign,seconds")
+        Some("step,total,cpc,cons,curv,lyap,sign,seconds")
     );
     lines
         .map(|line| {
             let mut row: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
-            assert_eq!(row.len(), 9, "bad row {line}");
+            assert_eq!(row.len(), 8, "bad row {line}");
             row.pop();
             row
         })
