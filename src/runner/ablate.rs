@@ -172,9 +172,9 @@ pub fn run_grid(
     mut log: impl FnMut(&CellResult),
     mut progress: impl FnMut(&str, u64, u64, u64, &StepValues),
 ) -> Result<Vec<CellResult>> {
-    if task_sets.is_empty() {
+    let Some(protocol) = task_sets.first() else {
         return Err(Error::config("task-sets", "must be at least 1"));
-    }
+    };
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     // Training every task writes the grid's folder; one task writes its run folder only, and a
     // report from what is there only reads.
@@ -257,10 +257,10 @@ pub fn run_grid(
         if !wanted {
             continue;
         }
-        let trained = match previous {
-            Some(_) if other_protocol.is_none() => continue,
-            Some(i) => Trained::from(done.remove(i)),
-            None => {
+        let trained = match (previous, other_protocol) {
+            (Some(_), None) => continue,
+            (_, Some(i)) => Trained::from(done.remove(i)),
+            (None, None) => {
                 let resume = run.checkpoint().exists();
                 let start = std::time::Instant::now();
                 train(
@@ -294,7 +294,7 @@ pub fn run_grid(
     done.retain(|r| order.contains(&&r.cell));
     done.sort_by_key(|r| (order.iter().position(|n| *n == &r.cell), r.seed));
     if !matches!(work, GridWork::Task(_)) {
-        write_summary(out, &done, &order, task_sets)?;
+        write_summary(out, &done, &order, protocol)?;
     }
     Ok(done)
 }
@@ -404,16 +404,13 @@ fn write_summary(
     out: &Path,
     results: &[CellResult],
     order: &[&String],
-    task_sets: &[ReachConfig],
+    protocol: &ReachConfig,
 ) -> Result<PathBuf> {
-    let Some(protocol) = task_sets.first() else {
-        return Err(Error::config("task-sets", "must be at least 1"));
-    };
     let json_path = out.join("ablation.json");
     crate::fsutil::write_json(&json_path, results)?;
-    // Read from the results, not the command line: the seeds asked for were evaluated on
-    // `task_sets` (or refused), but results of other seeds in the folder are reported as they
-    // were evaluated.
+    // Read from the results, not the command line: the seeds asked for were evaluated on the
+    // requested task sets (or refused), but results of other seeds in the folder are reported
+    // as they were evaluated.
     let set_counts = results.iter().map(|r| r.success_per_task_set.len().max(1));
     let (fewest, most) = set_counts.fold((usize::MAX, 0), |(lo, hi), n| (lo.min(n), hi.max(n)));
     let sets = match (fewest, most) {
