@@ -284,6 +284,17 @@ impl ConfigBase {
     }
 }
 
+/// How many control periods ahead the PD law looks: `u = -Kp (e + Kd / Kp de/dt)`.
+const PD_LEAD_PERIODS: f64 = 10.0;
+
+/// The derivative gain of a procl preset: `Kd = 10 dt Kp`, so the law damps over ten control
+/// periods whatever the system's rate. At 0.02 s it is the paper's `Kd = 2` for `Kp = 10`; at
+/// Fetch's 0.04 s it damps the orbits a slightly turned latent makes about its goal, which the
+/// paper's `Kd = 2` leaves (docs/design.md, "Fetch").
+fn pd_derivative_gain(kp: f64, control_dt_s: f64) -> f64 {
+    PD_LEAD_PERIODS * control_dt_s * kp
+}
+
 /// The training steps every published result uses on `env` (and the default of `procl train`):
 /// 600 on point mass and Fetch, 1200 on the reacher.
 pub fn training_budget(env: EnvKind) -> u64 {
@@ -388,7 +399,6 @@ impl TrainConfig {
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.risk_latent_std = Some(1.0);
             config.loss.kp = 1.0;
-            config.loss.kd = 0.2;
             config.loss.lambda_r /= 10.0;
             if method == Method::Procl {
                 // The risk's velocity term charges the heavily damped wrist for its velocity
@@ -406,11 +416,9 @@ impl TrainConfig {
         if env == EnvKind::Fetch {
             // The paper's dt_R for Fetch is 1 (the env's control dt for the 2-D envs).
             config.loss.lyapunov_dt_s = Some(1.0);
-            if preset == Preset::Procl {
-                // A larger Kd damps the orbits a slightly turned latent makes about its goal
-                // (docs/design.md, "Fetch").
-                config.loss.kd = 4.0;
-            }
+        }
+        if preset == Preset::Procl {
+            config.loss.kd = pd_derivative_gain(config.loss.kp, env.make().control_dt_s());
         }
         config
     }
@@ -432,6 +440,9 @@ impl TrainConfig {
         let mut config = Self::preset(preset, method, env);
         config.env = None;
         config.control_dt_s = Some(control_dt_s);
+        if preset == Preset::Procl {
+            config.loss.kd = pd_derivative_gain(config.loss.kp, control_dt_s);
+        }
         config.model.encoder.latent_dim = action_dim;
         config.model.dynamics.latent_dim = action_dim;
         if let Some(nvae) = &mut config.nvae {
@@ -706,10 +717,16 @@ mod tests {
         );
         let reacher = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
         assert_eq!(arm.model.encoder.head, reacher.model.encoder.head);
-        assert_eq!(arm.loss, reacher.loss);
         assert_eq!(
-            (arm.model.encoder.latent_dim, arm.control_dt_s),
-            (3, Some(0.05))
+            LossConfig {
+                kd: reacher.loss.kd,
+                ..arm.loss
+            },
+            reacher.loss
+        );
+        assert_eq!(
+            (arm.model.encoder.latent_dim, arm.control_dt_s, arm.loss.kd),
+            (3, Some(0.05), 0.5)
         );
         let generic =
             TrainConfig::custom_preset(Preset::Procl, Method::Procl, 2, 0.05, Recipe::Generic);
@@ -745,11 +762,19 @@ mod tests {
         assert_eq!(reacher_pc3.loss.kp, 1.0);
         let paper = TrainConfig::preset(Preset::Paper, Method::Procl, EnvKind::Fetch);
         assert_eq!(paper.orientation_search_every, 0);
-        // Fetch's latent PD is damped harder than the paper's Kd = 2, for both latent methods.
+        // Kd = 10 dt Kp in every procl preset, for both latent methods, and for custom data at
+        // its own control period; the paper preset keeps the paper's Kd = 2.
         assert_eq!(paper.loss.kd, 2.0);
         for method in [Method::Procl, Method::Pc3] {
-            let fetch = TrainConfig::preset(Preset::Procl, method, EnvKind::Fetch);
-            assert_eq!((fetch.loss.kp, fetch.loss.kd), (10.0, 4.0));
+            let gains = |env| {
+                let loss = TrainConfig::preset(Preset::Procl, method, env).loss;
+                (loss.kp, loss.kd)
+            };
+            assert_eq!(gains(EnvKind::PointMass), (10.0, 2.0));
+            assert_eq!(gains(EnvKind::Reacher), (1.0, 0.2));
+            assert_eq!(gains(EnvKind::Fetch), (10.0, 4.0));
+            let custom = TrainConfig::custom_preset(Preset::Procl, method, 1, 0.1, Recipe::Generic);
+            assert_eq!((custom.loss.kp, custom.loss.kd), (10.0, 10.0));
         }
     }
 
