@@ -744,6 +744,10 @@ mod tests {
             let reacher = TrainConfig::preset(preset, Method::Procl, EnvKind::Reacher);
             assert_eq!(reacher.loss.lyapunov_dt_s, None);
         }
+    }
+
+    #[test]
+    fn procl_presets_orient_by_the_action_response_and_damp_by_one_rule() {
         // Every procl preset, for both latent methods, orients by the action response; the
         // paper preset searches nothing.
         for env in [EnvKind::PointMass, EnvKind::Fetch, EnvKind::Reacher] {
