@@ -307,7 +307,19 @@ pub fn training_budget(env: EnvKind) -> u64 {
 impl TrainConfig {
     /// The configuration of `preset` for `method` on `env`.
     pub fn preset(preset: Preset, method: Method, env: EnvKind) -> Self {
-        let du = env.make().action_dim();
+        Self::preset_at_period(preset, method, env, None)
+    }
+
+    /// [`Self::preset`] with the gain rule applied at `control_dt_s` (custom data's period)
+    /// instead of the environment's when given.
+    fn preset_at_period(
+        preset: Preset,
+        method: Method,
+        env: EnvKind,
+        control_dt_s: Option<f64>,
+    ) -> Self {
+        let sim = env.make();
+        let du = sim.action_dim();
         let mut config = Self {
             preset,
             method,
@@ -418,7 +430,8 @@ impl TrainConfig {
             config.loss.lyapunov_dt_s = Some(1.0);
         }
         if preset == Preset::Procl {
-            config.loss.kd = pd_derivative_gain(config.loss.kp, env.make().control_dt_s());
+            let dt = control_dt_s.unwrap_or_else(|| sim.control_dt_s());
+            config.loss.kd = pd_derivative_gain(config.loss.kp, dt);
         }
         config
     }
@@ -437,12 +450,9 @@ impl TrainConfig {
             Recipe::Generic => EnvKind::PointMass,
             Recipe::Env(env) => env,
         };
-        let mut config = Self::preset(preset, method, env);
+        let mut config = Self::preset_at_period(preset, method, env, Some(control_dt_s));
         config.env = None;
         config.control_dt_s = Some(control_dt_s);
-        if preset == Preset::Procl {
-            config.loss.kd = pd_derivative_gain(config.loss.kp, control_dt_s);
-        }
         config.model.encoder.latent_dim = action_dim;
         config.model.dynamics.latent_dim = action_dim;
         if let Some(nvae) = &mut config.nvae {
