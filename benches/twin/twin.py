@@ -146,8 +146,8 @@ def sign_term(response, regressors, h, regions, floor):
 
 
 PRESETS = {
-    # point mass: Cartesian keypoints over 16x16 cells, linear head, paper gains.
-    "point-mass": dict(second_stride=2, polar=False, pairwise=False, hidden=0, kp=10.0,
+    # point mass: Cartesian keypoints over 16x16 cells, tanh head, paper gains.
+    "point-mass": dict(second_stride=2, polar=False, pairwise=False, hidden=32, kp=10.0,
                        kd=2.0, q_v=0.1, lambda_r=10.0, ahead=0, std_c=None),
     # reacher: polar keypoints with their pairwise angles over 32x32 cells, tanh head, the
     # standardised risk and the sign term (5 steps ahead, 6 groups).

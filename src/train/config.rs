@@ -160,7 +160,7 @@ fn default_orientation_tolerance() -> f64 {
 /// The recipe data from elsewhere trains with.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Recipe {
-    /// The point mass's (Cartesian keypoints, a linear map to the latent) with the latent
+    /// The point mass's (Cartesian keypoints, a tanh layer of 32, the output layer) with the latent
     /// oriented by its response to the action: nothing else about the system is known.
     Generic,
     /// The recipe of one of procl's environments. The reacher's is the recipe for frames that
@@ -295,6 +295,18 @@ fn pd_derivative_gain(kp: f64, control_dt_s: f64) -> f64 {
     PD_LEAD_PERIODS * control_dt_s * kp
 }
 
+/// The encoder head of every procl preset: 16 soft-argmax keypoints, a tanh layer of 32 and the
+/// output layer; with `polar`, the keypoints are polar about the frames' hub and the angles
+/// between them join the tanh layer's inputs (the reacher's and frames with a hub).
+fn procl_head(polar: bool) -> EncoderHead {
+    EncoderHead::SoftArgmax {
+        keypoints: 16,
+        hidden: 32,
+        polar,
+        pairwise_angles: polar,
+    }
+}
+
 /// The training steps every published result uses on `env` (and the default of `procl train`):
 /// 600 on point mass and Fetch, 1200 on the reacher.
 pub fn training_budget(env: EnvKind) -> u64 {
@@ -355,6 +367,12 @@ impl TrainConfig {
                 config.orientation_criterion = OrientationCriterion::ActionResponse;
                 config.orientation_search_every = 50;
                 config.model.encoder.keypoint_sharpness = 30.0;
+                // A tanh layer of 32 between the keypoints and the latent lets `h` bend where
+                // the pixels move unevenly per unit of state (the reacher's wrist is 5-10x
+                // fainter than its shoulder through a linear map); where they do not, it
+                // learns a near-linear map and costs nothing (docs/design.md, "Which parts
+                // are on where").
+                config.model.encoder.head = procl_head(false);
             }
         }
         match method {
@@ -363,6 +381,8 @@ impl TrainConfig {
             Method::Nvae => {
                 let mut nvae = NvaeConfig::for_action_dim(du);
                 if preset == Preset::Procl {
+                    // Every method compares on ProCL's encoder head.
+                    nvae.encoder_head = config.model.encoder.head.clone();
                     // Its paper's appendix fixes `A = 0, B = 0, C = 1`: every action then
                     // accelerates its own latent coordinate at the same rate everywhere, which
                     // a learned, state-dependent `C` lets the reacher's latent bend away from
@@ -386,26 +406,16 @@ impl TrainConfig {
             // ProCL's reacher head (below): with Cartesian keypoints the NewtonianVAE's
             // latent is the fingertip's image position, and PID reaches 2% of goals
             // (docs/research/reacher.md, H).
-            nvae.encoder_head = EncoderHead::SoftArgmax {
-                keypoints: 16,
-                hidden: 32,
-                polar: true,
-                pairwise_angles: true,
-            };
+            nvae.encoder_head = procl_head(true);
         }
         if env == EnvKind::Reacher && preset == Preset::Procl && method != Method::Nvae {
             // The shoulder is a revolute joint: polar keypoints about it (the hub the frames
             // turn about, placed before training by `Encoder::place_polar_frame`),
-            // the angles between keypoints (entering from 0) over 32x32 cells, a tanh layer, a
+            // the angles between keypoints (entering from 0) over 32x32 cells, a
             // latent started at unit spread, orientation by the action response, and the risk
             // on the standardised latent with gains matched to that scale (docs/design.md,
             // "Reacher").
-            config.model.encoder.head = EncoderHead::SoftArgmax {
-                keypoints: 16,
-                hidden: 32,
-                polar: true,
-                pairwise_angles: true,
-            };
+            config.model.encoder.head = procl_head(true);
             config.model.encoder.pairwise_init_scale = 0.0;
             config.model.encoder.trunk_second_stride = 1;
             config.model.encoder.init_latent_std = Some(1.0);
@@ -790,6 +800,43 @@ mod tests {
             let custom = TrainConfig::custom_preset(Preset::Procl, method, 1, 0.1, Recipe::Generic);
             assert_eq!((custom.loss.kp, custom.loss.kd), (10.0, 10.0));
         }
+    }
+
+    #[test]
+    fn every_method_of_a_procl_preset_encodes_through_one_head_with_a_tanh_layer() {
+        let head_of = |config: &TrainConfig| match &config.nvae {
+            Some(nvae) => nvae.encoder_head.clone(),
+            None => config.model.encoder.head.clone(),
+        };
+        // (configuration, whether its frames turn about a hub: the reacher's and a custom arm's
+        // keypoints are polar, with the angles between them).
+        let mut cases = vec![];
+        for method in [Method::Procl, Method::Pc3, Method::Nvae] {
+            for env in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
+                let config = TrainConfig::preset(Preset::Procl, method, env);
+                cases.push((config, env == EnvKind::Reacher));
+            }
+            for (recipe, polar) in [
+                (Recipe::Generic, false),
+                (Recipe::Env(EnvKind::Reacher), true),
+            ] {
+                let config = TrainConfig::custom_preset(Preset::Procl, method, 2, 0.05, recipe);
+                cases.push((config, polar));
+            }
+        }
+        for (config, polar) in cases {
+            let expected = EncoderHead::SoftArgmax {
+                keypoints: 16,
+                hidden: 32,
+                polar,
+                pairwise_angles: polar,
+            };
+            let what = (config.env, config.method);
+            assert_eq!(head_of(&config), expected, "{what:?}");
+        }
+        // The paper preset keeps PC3's MLP.
+        let paper = TrainConfig::preset(Preset::Paper, Method::Procl, EnvKind::PointMass);
+        assert_eq!(paper.model.encoder.head, EncoderHead::Mlp { hidden: 256 });
     }
 
     #[test]
