@@ -382,7 +382,7 @@ impl TrainConfig {
                 let mut nvae = NvaeConfig::for_action_dim(du);
                 if preset == Preset::Procl {
                     // Every method compares on ProCL's encoder head.
-                    nvae.encoder_head = config.model.encoder.head.clone();
+                    nvae.encoder_head = config.model.encoder.head;
                     // Its paper's appendix fixes `A = 0, B = 0, C = 1`: every action then
                     // accelerates its own latent coordinate at the same rate everywhere, which
                     // a learned, state-dependent `C` lets the reacher's latent bend away from
@@ -805,8 +805,8 @@ mod tests {
     #[test]
     fn every_method_of_a_procl_preset_encodes_through_one_head_with_a_tanh_layer() {
         let head_of = |config: &TrainConfig| match &config.nvae {
-            Some(nvae) => nvae.encoder_head.clone(),
-            None => config.model.encoder.head.clone(),
+            Some(nvae) => nvae.encoder_head,
+            None => config.model.encoder.head,
         };
         // (configuration, whether its frames turn about a hub: the reacher's and a custom arm's
         // keypoints are polar, with the angles between them).
