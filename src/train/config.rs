@@ -102,11 +102,6 @@ pub struct TrainConfig {
     pub batch_size: usize,
     /// Adam learning rate.
     pub learning_rate: f64,
-    /// How the learning rate moves over the run: held (`constant`) or annealed to 0 along a
-    /// half cosine over `steps` (`cosine`), so the last steps settle the weights instead of
-    /// stepping them as far as the first.
-    #[serde(default, skip_serializing_if = "LearningRateSchedule::is_constant")]
-    pub learning_rate_schedule: LearningRateSchedule,
     /// Save a checkpoint every this many steps (and at the end).
     pub checkpoint_every: u64,
     /// Every this many steps, also keep the weights in `snapshots/step-NNNNNN/`, a run folder
@@ -148,32 +143,6 @@ pub struct TrainConfig {
 
 fn is_zero(value: &u64) -> bool {
     *value == 0
-}
-
-/// The learning rate over a run (`learning_rate_schedule`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum LearningRateSchedule {
-    #[default]
-    Constant,
-    Cosine,
-}
-
-impl LearningRateSchedule {
-    fn is_constant(&self) -> bool {
-        *self == Self::Constant
-    }
-
-    /// The rate for step `step` (0-based) of `steps`, from the initial `rate`.
-    pub fn rate(&self, rate: f64, step: u64, steps: u64) -> f64 {
-        match self {
-            Self::Constant => rate,
-            Self::Cosine => {
-                let progress = step as f64 / steps.max(1) as f64;
-                rate * 0.5 * (1.0 + (std::f64::consts::PI * progress.min(1.0)).cos())
-            }
-        }
-    }
 }
 
 fn default_orientation_margin() -> f64 {
@@ -372,7 +341,6 @@ impl TrainConfig {
             steps: training_budget(env),
             batch_size: 128,
             learning_rate: 1e-3,
-            learning_rate_schedule: LearningRateSchedule::Constant,
             checkpoint_every: 500,
             snapshot_every: 0,
             orientation_search_every: 0,
@@ -743,39 +711,6 @@ pub(crate) fn merge(base: &mut toml::Table, over: toml::Table) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn cosine_schedule_anneals_the_rate_from_its_start_to_zero_over_the_run() {
-        let cosine = LearningRateSchedule::Cosine;
-        // 0.5 (1 + cos(pi s / 100)) at s = 0, 25, 50, 75, 100: 1, 0.8536, 0.5, 0.1464, 0.
-        for (step, factor) in [
-            (0, 1.0),
-            (25, 0.853_553),
-            (50, 0.5),
-            (75, 0.146_447),
-            (100, 0.0),
-        ] {
-            let rate = cosine.rate(2e-3, step, 100);
-            assert!((rate - 2e-3 * factor).abs() < 1e-9, "step {step}: {rate}");
-        }
-        assert_eq!(LearningRateSchedule::Constant.rate(2e-3, 99, 100), 2e-3);
-        // The schedule is part of a configuration only when it is not the default.
-        let config = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::PointMass);
-        assert!(
-            !toml::to_string(&config)
-                .unwrap()
-                .contains("learning_rate_schedule")
-        );
-        let cosine_config = TrainConfig {
-            learning_rate_schedule: cosine,
-            ..config
-        };
-        let text = toml::to_string(&cosine_config).unwrap();
-        assert!(
-            text.contains("learning_rate_schedule = \"cosine\""),
-            "{text}"
-        );
-    }
 
     #[test]
     fn recipes_parse_by_name_and_frames_without_a_hub_get_the_generic_one() {

@@ -329,10 +329,7 @@ fn run_training<O: Objective>(
         }
         let mut grads = total.backward();
         host.backward(&mut grads);
-        let rate = config
-            .learning_rate_schedule
-            .rate(config.learning_rate, step, config.steps);
-        model = adam.step(rate, model, &grads);
+        model = adam.step(config.learning_rate, model, &grads);
         model = objective.after_update(model, step)?;
         let row: Vec<String> = values.values.iter().map(|x| format!("{x:.6}")).collect();
         writeln!(

@@ -218,6 +218,7 @@ const RETIRED_OPTIONS: &[(&str, Option<&str>)] = &[
     ("model.encoder.relative_reference_radius", Some("0.0")),
     ("model.encoder.head.with_cartesian", Some("false")),
     ("model.encoder.head.linear_base", Some("false")),
+    ("learning_rate_schedule", Some("\"constant\"")),
 ];
 
 /// Removes the retired options that are off from a run's configuration, so runs trained by a
