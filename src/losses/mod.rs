@@ -84,16 +84,6 @@ pub struct LossConfig {
     /// Groups of the sign term; at least 2. A group must be narrow enough to see a hook.
     #[serde(default = "default_action_response_regions")]
     pub action_response_regions: usize,
-    /// Each of the sign term's groups is cut into this many along the latent's second
-    /// principal axis (1: groups along the first axis only). A hook at one end of the
-    /// second coordinate (the reacher's straight wrist) shares every group along the first
-    /// with the rest of that coordinate's range, and one map fitted over the group averages it
-    /// away.
-    #[serde(
-        default = "default_action_response_regions_across",
-        skip_serializing_if = "is_one"
-    )]
-    pub action_response_regions_across: usize,
     /// Singular-value floor of the sign term: each group's charge also gets `relu(rho -
     /// sigma_min(D_r) / s)`, `rho` this value (0: off). The sign term asks each coordinate to
     /// move forwards under its own action, not to move by much; PD on `h` moves a joint only
@@ -110,14 +100,6 @@ fn default_action_response_horizon() -> usize {
 
 fn default_action_response_regions() -> usize {
     3
-}
-
-fn default_action_response_regions_across() -> usize {
-    1
-}
-
-fn is_one(value: &usize) -> bool {
-    *value == 1
 }
 
 /// Reads an optional number where `0` (like a missing value) means off.
@@ -149,7 +131,6 @@ impl Default for LossConfig {
             action_response_velocity: false,
             action_response_sign_weight: 0.0,
             action_response_regions: default_action_response_regions(),
-            action_response_regions_across: default_action_response_regions_across(),
             action_response_singular_floor: 0.0,
         }
     }
@@ -208,12 +189,6 @@ impl LossConfig {
                     format!("{value} must be finite and >= 0"),
                 ));
             }
-        }
-        if self.action_response_regions_across == 0 {
-            return Err(Error::config(
-                "loss.action_response_regions_across",
-                "0 groups; 1 keeps the groups along the first axis whole",
-            ));
         }
         if self.action_response_regions < 2 {
             return Err(Error::config(
@@ -404,10 +379,7 @@ fn sign_term(
         response,
         regressors,
         h_now,
-        [
-            config.action_response_regions,
-            config.action_response_regions_across,
-        ],
+        config.action_response_regions,
         config.action_response_singular_floor,
     )
 }

@@ -53,8 +53,7 @@ fn least_squares_coefficients(a: Tensor<2>, x: Tensor<2>) -> Option<Tensor<2>> {
 
 /// The sign term (see [`super::LossConfig::action_response_sign_weight`]) of the response
 /// `a [n, d]` on the regressors `x [n, p]`, whose last `d` columns are the drive: the mean over
-/// `regions = [along, across]` groups of `h [n, d]` (`along` slices of its first principal
-/// axis, each cut into `across` along the second; see [`principal_axis_groups`]) of
+/// `regions` groups of `h [n, d]` (contiguous along its first principal axis) of
 /// `sum_i relu(-D_r[i, i]) / s`, plus `relu(singular_floor - sigma_min(D_r) / s)` where
 /// `singular_floor > 0` (see [`super::LossConfig::action_response_singular_floor`]). 0 when `x`
 /// has fewer than `d` columns, the batch has too few rows per group to fit (`p + 2`), or a fit
@@ -63,15 +62,14 @@ pub fn action_response_sign(
     a: Tensor<2>,
     x: Tensor<2>,
     h: Tensor<2>,
-    regions: [usize; 2],
+    regions: usize,
     singular_floor: f64,
 ) -> Tensor<1> {
     let device = x.device();
     let zero = || Tensor::zeros([1], &device);
     let [n, p] = x.dims();
     let [_, d] = a.dims();
-    let count = regions[0] * regions[1];
-    if p < d || count == 0 || n / count < p + 2 {
+    if p < d || regions == 0 || n / regions < p + 2 {
         return zero();
     }
     // The drive block's diagonal: rows p - d + i, column i of B.
@@ -99,6 +97,7 @@ pub fn action_response_sign(
     }
     let mut total = zero();
     let groups = principal_axis_groups(h, regions);
+    let count = groups.len();
     for index in groups {
         let Some(local) = least_squares_coefficients(
             a.clone().select(0, index.clone()),
@@ -145,60 +144,39 @@ fn smallest_singular_value(m: Tensor<2>) -> Tensor<1> {
     (m * device_matrix(&outer, &device)).sum().reshape([1])
 }
 
-/// Each row's projection of the centred `h [n, du]` on its first two principal axes (the
-/// eigenvectors of the centred covariance with the largest eigenvalues; the second is all 0
-/// for `du = 1`).
-fn principal_projections(h: Tensor<2>) -> [Vec<f64>; 2] {
+/// Row indices of `h [n, du]` sorted by their projection on its first principal axis (the
+/// eigenvector of the centred covariance with the largest eigenvalue; ties keep row order).
+fn principal_axis_order(h: Tensor<2>) -> Vec<usize> {
     let [n, du] = h.dims();
     let values = crate::model::to_vec(h.detach());
     let rows = nalgebra::DMatrix::from_row_iterator(n, du, values.into_iter().map(f64::from));
     let mean = rows.row_mean();
     let centred = nalgebra::DMatrix::from_fn(n, du, |i, j| rows[(i, j)] - mean[j]);
     let eigen = (centred.transpose() * &centred).symmetric_eigen();
-    let mut axes: Vec<usize> = (0..du).collect();
-    axes.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
-    let project = |axis: Option<&usize>| match axis {
-        Some(&a) => (&centred * eigen.eigenvectors.column(a))
-            .iter()
-            .copied()
-            .collect(),
-        None => vec![0.0; n],
-    };
-    [project(axes.first()), project(axes.get(1))]
+    let axis = eigen.eigenvalues.imax();
+    let projection = centred * eigen.eigenvectors.column(axis);
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&i, &j| projection[i].total_cmp(&projection[j]));
+    order
 }
 
-/// The row indices of the sign term's groups of `h [n, du]`: `along` near-equal contiguous
-/// slices along its first principal axis, each cut into `across` near-equal contiguous
-/// slices along the second (ties keep row order).
-fn principal_axis_groups(
-    h: Tensor<2>,
-    [along, across]: [usize; 2],
-) -> Vec<Tensor<1, burn::tensor::Int>> {
+/// The row indices of the sign term's groups of `h [n, du]`: `regions` near-equal contiguous
+/// slices along its first principal axis (rows `[r n / R, (r + 1) n / R)` of
+/// [`principal_axis_order`] for group `r`).
+fn principal_axis_groups(h: Tensor<2>, regions: usize) -> Vec<Tensor<1, burn::tensor::Int>> {
     let [n, _] = h.dims();
     let device = h.device();
-    let [first, second] = principal_projections(h);
-    let mut order: Vec<usize> = (0..n).collect();
-    order.sort_by(|&i, &j| first[i].total_cmp(&first[j]));
-    let mut groups = Vec::with_capacity(along * across);
-    for r in 0..along {
-        let mut slice = order[r * n / along..(r + 1) * n / along].to_vec();
-        if across > 1 {
-            slice.sort_by(|&i, &j| second[i].total_cmp(&second[j]));
-        }
-        let m = slice.len();
-        for c in 0..across {
-            let rows: Vec<i64> = slice[c * m / across..(c + 1) * m / across]
+    let order = principal_axis_order(h);
+    (0..regions)
+        .map(|r| {
+            let rows: Vec<i64> = order[r * n / regions..(r + 1) * n / regions]
                 .iter()
                 .map(|&i| i as i64)
                 .collect();
             let len = rows.len();
-            groups.push(Tensor::<1, burn::tensor::Int>::from_data(
-                TensorData::new(rows, [len]),
-                &device,
-            ));
-        }
-    }
-    groups
+            Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(rows, [len]), &device)
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -251,7 +229,7 @@ mod tests {
         let device = cpu_device().autodiff();
         let sign = |maps, regions| {
             let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
-            scalar(action_response_sign(a, u, h, [regions, 1], 0.0))
+            scalar(action_response_sign(a, u, h, regions, 0.0))
         };
         let want = 2.0 * 2f64.sqrt();
         assert!((sign([IDENTITY, IDENTITY, MINUS], 3) - want).abs() < 1e-4);
@@ -290,7 +268,7 @@ mod tests {
         let device = cpu_device().autodiff();
         let (h, u, a) = regional_responses(maps, (1.0, 0.0), &device);
         let a = a.require_grad();
-        let loss = action_response_sign(a.clone(), u.clone(), h, [3, 1], singular_floor);
+        let loss = action_response_sign(a.clone(), u.clone(), h, 3, singular_floor);
         let grads = loss.backward();
         let got = to_vec(a.grad(&grads).expect("gradient of a"));
         let u = to_vec(u);
@@ -305,49 +283,6 @@ mod tests {
             .collect()
     }
 
-    /// A latent that hooks back at one end of its second coordinate (24 rows): an arm `A` of
-    /// 8 points along `y = 0` near the origin with response `I`, and at `x` 10 to 10.75 two
-    /// runs side by side, `B` at `y = -0.5` (response `I`) and the hook `C` at `y = 0.5`
-    /// (response `-I`), interleaved along `x`; each run's actions cycle through (1,0), (0,1),
-    /// (-1,0), (0,-1). Rows are shuffled (row `k` holds point `7 k mod 24`). Returns the sign
-    /// term with `regions` and no floor.
-    fn hook_across(regions: [usize; 2]) -> f64 {
-        let device = cpu_device().autodiff();
-        let actions = [[1.0f32, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
-        let (mut h, mut u, mut a) = (vec![], vec![], vec![]);
-        for k in 0..24 {
-            let point = 7 * k % 24;
-            let (run, j) = (point / 8, point % 8);
-            let (x, y, response) = match run {
-                0 => (0.1 * j as f32, 0.0, 1.0),
-                1 => (10.0 + 0.1 * j as f32, -0.5, 1.0),
-                _ => (10.05 + 0.1 * j as f32, 0.5, -1.0),
-            };
-            h.extend([x, y]);
-            let [u0, u1] = actions[j % 4];
-            u.extend([u0, u1]);
-            a.extend([response * u0, response * u1]);
-        }
-        let [h, u, a] = [h, u, a].map(|v| t2(&v, 24, 2, &device));
-        scalar(action_response_sign(a, u, h, regions, 0.0))
-    }
-
-    #[test]
-    fn sign_term_groups_cut_across_see_a_hook_at_the_second_coordinates_end() {
-        // Three groups along x: A, then B and C's first halves, then their second halves;
-        // the two mixed groups fit (I - I) / 2 = 0, so nothing is charged.
-        assert_eq!(hook_across([3, 1]), 0.0);
-        // Each cut in two along y: A's halves, and B's and C's quarters apart. The whole batch
-        // fits (12 I)^-1 (4 I + 4 I - 4 I) = I / 3 (each run's `x^T x` is 4 I), whose rms entry
-        // is s = 1 / (3 sqrt 2); C's two groups have diagonal (-1, -1): 4 over 6 groups is
-        // 2 / 3, over s, 2 sqrt 2.
-        let want = 2.0 * 2f64.sqrt();
-        let got = hook_across([3, 2]);
-        assert!((got - want).abs() < 1e-4, "{got} vs {want}");
-        // Groups of 2 rows are too few to fit (p + 2 = 4): no judgement.
-        assert_eq!(hook_across([3, 4]), 0.0);
-    }
-
     #[test]
     fn singular_floor_charges_a_group_whose_map_squashes_a_direction() {
         // B_g = I, I and W = diag(1, 0.1) (a faint wrist; the diagonal is positive, so the sign
@@ -358,7 +293,7 @@ mod tests {
         let faint = [[1.0f32, 0.0], [0.0, 0.1]];
         let sign = |maps, turn, floor| {
             let (h, u, a) = regional_responses(maps, turn, &device);
-            scalar(action_response_sign(a, u, h, [3, 1], floor))
+            scalar(action_response_sign(a, u, h, 3, floor))
         };
         let scale = 1.49f64.sqrt() / 2.0;
         let want = (0.5 - 0.1 / scale) / 3.0;

@@ -199,6 +199,7 @@ const RETIRED_OPTIONS: &[(&str, Option<&str>)] = &[
     ("loss.action_response_turn_weight", Some("0.0")),
     ("loss.action_response_grouping", Some("\"principal-axis\"")),
     ("loss.action_response_sign_form", Some("\"diagonal\"")),
+    ("loss.action_response_regions_across", Some("1")),
     ("loss.separation_weight", Some("0.0")),
     ("loss.separation_ratio", None),
     ("loss.decoder_weight", Some("0.0")),
