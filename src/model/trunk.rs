@@ -782,8 +782,11 @@ mod tests {
                 want.keys().collect::<Vec<_>>(),
                 "{env} {preset:?}: the same parameters get gradients"
             );
-            // Each parameter's gradient is held to the relative error 1e-5 in norm, and each
-            // entry to 1e-4 of the largest. The bias of the keypoint maps has an exact gradient
+            // Each parameter's gradient is held to the relative error 3e-5 in norm, and each
+            // entry to 1e-4 of the largest: host and burn sum over the batch's cells in
+            // different orders, which also change with the CPU's vector width, and f32 sums of
+            // thousands of terms then differ by about 1e-5 of their norm (the keypoint maps'
+            // weight: 1.02e-5 on an AVX2 machine). The bias of the keypoint maps has an exact gradient
             // of 0 (a softmax ignores a constant added to its logits), which both compute as
             // rounding noise: it is held to the norm of the encoder's whole gradient instead. A
             // gradient that is a small part of the whole (the keypoints' sharpness: the
@@ -804,7 +807,7 @@ mod tests {
                 let largest = want.iter().fold(0f32, |m, x| m.max(x.abs()));
                 let worst = diff.iter().fold(0f32, |m, x| m.max(x.abs()));
                 assert!(
-                    relative <= 1e-5,
+                    relative <= 3e-5,
                     "{env} {preset:?} {path}: host and burn differ by {relative} in norm"
                 );
                 assert!(
