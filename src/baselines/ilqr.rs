@@ -19,6 +19,7 @@ use crate::model::{Dynamics, to_vec};
 
 /// iLQR-MPC settings (defaults: PC3's planar settings, horizon 10, 6 candidates, 4 iterations).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct IlqrConfig {
     /// Planning horizon in control steps.
     pub horizon: usize,

@@ -11,6 +11,7 @@ use crate::model::{Dynamics, to_vec};
 
 /// CEM-MPC settings.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct MpcConfig {
     /// Planning horizon in control steps.
     pub horizon: usize,

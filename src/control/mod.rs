@@ -11,6 +11,7 @@ pub use pid::{FeedbackLaw, Pid, PidController};
 
 /// PD control `u = Kp (h* - h) + Kd (v* - v)` with diagonal gains, clipped to [-1, 1].
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct PdController {
     pub kp: f64,
     pub kd: f64,

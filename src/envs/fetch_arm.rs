@@ -142,11 +142,12 @@ pub fn forward_kinematics(q: &[f64; ARM_JOINTS]) -> ArmPose {
 /// The gripper cannot point straight down everywhere in the workspace (near the robot and high
 /// the shoulder lift hits its limit; far and high the arm is 2-3 cm short), so the orientation is
 /// a soft term, weak against position: where it is infeasible the gripper tilts by up to ~12 deg
-/// and the grip site still lands within 0.3 mm (measured over 300 random targets: 0.25 mm). The posture term picks one arm pose out of the
-/// redundant ones. It is stiff on the two elbow-side rolls (upper arm and forearm): with them
+/// and the grip site still lands within 0.3 mm (measured over 300 random targets: 0.25 mm).
+/// The posture term picks one arm pose out of the redundant ones. It is stiff on the two elbow-side rolls (upper arm and forearm): with them
 /// free, targets near the robot and high have two mirror-image solutions with the elbow swung
 /// left or right, and the pose jumps between them (measured: 0.5 rad jumps for 3 mm moves).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct IkConfig {
     /// `w_o`: metres of position error worth one radian of orientation error.
     pub orientation_weight_m_per_rad: f64,
@@ -451,7 +452,8 @@ mod tests {
         eprintln!(
             "IK over 300 random targets: worst position error {worst:.2e} m, {tilted} tilted"
         );
-        // Measured: worst 0.25 mm, 16 tilted; the gripper points down to within 1 deg for most targets.
+        // Measured: worst 0.25 mm, 16 tilted; the gripper points down to within 1 deg for most
+        // targets.
         assert!(worst < 5e-4, "worst position error {worst} m");
         assert!(
             tilted < 60,

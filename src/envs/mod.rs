@@ -383,6 +383,13 @@ mod tests {
             ("[reacher]\n[fetch]\n", "variant.toml"),
             ("[reacher]\nbase_m = [0.2, 0.0]\n", "reacher.base_m"),
             ("[point-mass]\nmass_kg = -1.0\n", "point-mass.mass_kg"),
+            ("[point-mass.camera]\nheight = 0.8\n", "height"),
+            ("[fetch.camera]\ndistanse_m = 1.0\n", "distanse_m"),
+            ("[fetch.lighting]\nambient_light = 0.1\n", "ambient_light"),
+            (
+                "[fetch.ik]\norientation_weight = 1.0\n",
+                "orientation_weight",
+            ),
             (
                 "[fetch]\nworkspace_hi_m = [1.0, 0.9, 0.7]\n",
                 "fetch.workspace_lo_m",

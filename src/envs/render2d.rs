@@ -1,4 +1,4 @@
-//! Top-down rendering of the 2D environments with tiny-skia: checker floor plus anti-aliased shapes.
+//! Top-down rendering of the 2D environments with tiny-skia: a checker floor, anti-aliased shapes.
 
 use tiny_skia::{Color, FillRule, LineCap, Paint, PathBuilder, Pixmap, Rect, Stroke, Transform};
 

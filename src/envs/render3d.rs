@@ -160,6 +160,7 @@ impl Mat3 {
 /// `FRAME_PX` x `FRAME_PX` crop of a `full_render_px`-square render with vertical field of view
 /// `fovy_deg`, which is rendered directly as a 64x64 image with the cropped field of view.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct OrbitCamera {
     /// Distance from the look-at point, m.
     pub distance_m: f64,
@@ -272,6 +273,7 @@ impl CameraBasis {
 
 /// One directional light that casts shadows, an ambient term and a shadowless headlight.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Lighting {
     /// Direction from the scene towards the light (need not be unit length).
     pub to_light: [f64; 3],

@@ -10,6 +10,7 @@ use crate::error::{Error, Result};
 
 /// Dynamics architecture.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct DynamicsConfig {
     /// Dimension of `h` and `v` (= du).
     pub latent_dim: usize,

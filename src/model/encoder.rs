@@ -15,7 +15,7 @@ use crate::error::{Error, Result};
 
 /// How the conv features become `h`.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case", tag = "kind")]
+#[serde(rename_all = "kebab-case", tag = "kind", deny_unknown_fields)]
 pub enum EncoderHead {
     /// The PC3-style head: one more stride-2 conv, flatten, an MLP with `hidden` units.
     Mlp { hidden: usize },
@@ -50,6 +50,7 @@ pub enum EncoderHead {
 
 /// Encoder architecture. Defaults sized for 2 CPU cores.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct EncoderConfig {
     /// Dimension of `h` (= action dimension du).
     pub latent_dim: usize,

@@ -9,7 +9,8 @@ use rand_chacha::ChaCha8Rng;
 
 /// Redraws all float parameters of `module`: weights and their biases uniform in
 /// `+-1/sqrt(fan_in)` (PyTorch's default for Linear and Conv2d); parameters named `log_std`
-/// `log_sharpness`, `log_input_gain` and `precision_lower` and the orientation keep their configured initial values.
+/// `log_sharpness`, `log_input_gain` and `precision_lower` and the orientation keep their
+/// configured initial values.
 pub fn reinit_params<M: Module>(module: M, seed: u64) -> M {
     let mut mapper = SeededInit {
         rng: ChaCha8Rng::seed_from_u64(seed),

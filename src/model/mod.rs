@@ -130,6 +130,7 @@ pub struct ProclModel {
 
 /// Architecture of a [`ProclModel`]; stored in the run's `config.json`.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ModelConfig {
     pub encoder: EncoderConfig,
     pub dynamics: DynamicsConfig,

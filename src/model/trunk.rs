@@ -786,12 +786,12 @@ mod tests {
             // entry to 1e-4 of the largest: host and burn sum over the batch's cells in
             // different orders, which also change with the CPU's vector width, and f32 sums of
             // thousands of terms then differ by about 1e-5 of their norm (the keypoint maps'
-            // weight: 1.02e-5 on an AVX2 machine). The bias of the keypoint maps has an exact gradient
-            // of 0 (a softmax ignores a constant added to its logits), which both compute as
-            // rounding noise: it is held to the norm of the encoder's whole gradient instead. A
-            // gradient that is a small part of the whole (the keypoints' sharpness: the
-            // attention's covariance of logits and features, whose terms nearly cancel) is held
-            // to a hundredth of that norm, above its own rounding noise.
+            // weight: 1.02e-5 on an AVX2 machine). The bias of the keypoint maps has an exact
+            // gradient of 0 (a softmax ignores a constant added to its logits), which both
+            // compute as rounding noise: it is held to the norm of the encoder's whole gradient
+            // instead. A gradient that is a small part of the whole (the keypoints' sharpness:
+            // the attention's covariance of logits and features, whose terms nearly cancel) is
+            // held to a hundredth of that norm, above its own rounding noise.
             let norm = |v: &[f32]| v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>().sqrt();
             let overall = norm(&want.values().flatten().copied().collect::<Vec<_>>());
             for (path, want) in &want {

@@ -696,11 +696,17 @@ impl From<EnvKind> for ConfigBase {
     }
 }
 
-/// Deep-merges `over` into `base` (tables recursively, other values replaced).
+/// Deep-merges `over` into `base` (tables recursively, other values replaced). A table that
+/// names another `kind` (a head of another kind) replaces the base's whole: the fields of the
+/// base's kind mean nothing to it.
 pub(crate) fn merge(base: &mut toml::Table, over: toml::Table) {
     for (key, value) in over {
         match (base.get_mut(&key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o),
+            (Some(toml::Value::Table(b)), toml::Value::Table(o))
+                if o.get("kind").is_none_or(|kind| b.get("kind") == Some(kind)) =>
+            {
+                merge(b, o)
+            }
             (_, value) => {
                 base.insert(key, value);
             }
@@ -711,6 +717,27 @@ pub(crate) fn merge(base: &mut toml::Table, over: toml::Table) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_table_of_another_kind_replaces_the_base_and_one_of_the_same_kind_merges() {
+        let table = |text: &str| text.parse::<toml::Table>().unwrap();
+        let base = table("[head]\nkind = \"soft-argmax\"\nkeypoints = 8\nhidden = 32\n");
+        let merged = |over: &str| {
+            let mut merged = base.clone();
+            merge(&mut merged, table(over));
+            merged
+        };
+        assert_eq!(
+            merged("[head]\nkind = \"mlp\"\nhidden = 8\n"),
+            table("[head]\nkind = \"mlp\"\nhidden = 8\n")
+        );
+        let same_kind = "[head]\nkind = \"soft-argmax\"\nkeypoints = 8\nhidden = 16\n";
+        assert_eq!(merged("[head]\nhidden = 16\n"), table(same_kind));
+        assert_eq!(
+            merged("[head]\nkind = \"soft-argmax\"\nhidden = 16\n"),
+            table(same_kind)
+        );
+    }
 
     #[test]
     fn recipes_parse_by_name_and_frames_without_a_hub_get_the_generic_one() {

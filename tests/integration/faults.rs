@@ -230,6 +230,22 @@ fn a_read_only_destination_is_refused_in_one_line() {
 }
 
 #[test]
+fn a_misspelt_key_in_a_nested_config_table_is_refused_before_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, config) = tiny_training(dir.path(), 5);
+    let text = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(
+        &config,
+        format!("{text}[model.encoder]\nkeypoint_sharpnes = 2.0\n"),
+    )
+    .unwrap();
+    let out = dir.path().join("run");
+    let line = fails_with(&train_args(&data, &config, &out), "keypoint_sharpnes");
+    assert!(line.contains("model.encoder"), "{line}");
+    assert!(!out.exists(), "a refused run left a folder");
+}
+
+#[test]
 fn resume_refuses_a_dataset_changed_under_the_run() {
     let dir = tempfile::tempdir().unwrap();
     let (data, config) = tiny_training(dir.path(), 5);

@@ -367,6 +367,42 @@ fn bad_configs_are_rejected_by_field_name() {
     assert!(err.contains("batch_size"), "{err}");
     let err = config_err("lerning_rate = 0.1");
     assert!(err.contains("lerning_rate"), "unknown key not named: {err}");
+    // Unknown keys in nested tables are refused too, with their table's path.
+    for (bad, table, key) in [
+        (
+            "[model]
+encoders = 1",
+            "model",
+            "encoders",
+        ),
+        (
+            "[model.encoder]
+polar_angle_falloff = 0.4",
+            "model.encoder",
+            "polar_angle_falloff",
+        ),
+        (
+            "[model.encoder.head]
+keypoint = 8",
+            "model.encoder.head",
+            "keypoint",
+        ),
+        (
+            "[model.dynamics]
+hiden = 8",
+            "model.dynamics",
+            "hiden",
+        ),
+        (
+            "[loss]
+kp_ = 8.0",
+            "loss",
+            "kp_",
+        ),
+    ] {
+        let err = config_err(bad);
+        assert!(err.contains(table) && err.contains(key), "{bad}: {err}");
+    }
     let err = config_err("method = \"pc3\"\n[loss]\nlambda_r = 1.0");
     assert!(err.contains("loss.lambda_r"), "{err}");
 

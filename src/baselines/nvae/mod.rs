@@ -68,8 +68,8 @@ pub struct NvaeConfig {
     pub kl_standard_weight: f64,
     /// KL annealing: the transition KL's weight `beta` is `kl_start` for the first
     /// `kl_anneal_begin` steps, then rises linearly to 1 over `kl_anneal_steps` steps
-    /// (`kl_anneal_steps = 0`: `beta = 1` throughout). The NewtonianVAE paper anneals from 0.001 between epochs 30
-    /// and 60 of 300.
+    /// (`kl_anneal_steps = 0`: `beta = 1` throughout). The NewtonianVAE paper anneals from
+    /// 0.001 between epochs 30 and 60 of 300.
     pub kl_start: f64,
     #[serde(default)]
     pub kl_anneal_begin: u64,
