@@ -36,7 +36,7 @@ class Encoder(nn.Module):
     """procl's soft-argmax encoder: two convs, 1x1 feature maps, per-keypoint sharpness,
     Cartesian or polar keypoints (with the angles between them), a linear or tanh head."""
 
-    def __init__(self, du, second_stride, polar, pairwise, hidden, keypoints=16):
+    def __init__(self, du, second_stride, polar, pairwise, hidden, falloff=0.0, keypoints=16):
         super().__init__()
         self.conv1 = nn.Conv2d(3, 16, 4, stride=2, padding=1)
         self.conv2 = nn.Conv2d(16, 32, 3, stride=second_stride, padding=1)
@@ -52,7 +52,11 @@ class Encoder(nn.Module):
         self.register_buffer("grid_y", gy)
         self.register_buffer("transform", torch.eye(du))
         r2 = gx**2 + gy**2
-        self.register_buffer("angle", torch.atan2(gy, gx) * r2 / (r2 + FADE_RADIUS**2))
+        angle = torch.atan2(gy, gx) * r2 / (r2 + FADE_RADIUS**2)
+        if falloff > 0:
+            # The outer cells' angles count less (model.encoder.polar_angle_falloff).
+            angle = angle / (1 + r2 / falloff**2)
+        self.register_buffer("angle", angle)
         self.register_buffer("radius", r2.sqrt())
         pairs = torch.triu_indices(keypoints, keypoints, 1)
         self.register_buffer("upper", pairs[0] * keypoints + pairs[1])
@@ -149,10 +153,11 @@ PRESETS = {
     # point mass: Cartesian keypoints over 16x16 cells, tanh head, paper gains.
     "point-mass": dict(second_stride=2, polar=False, pairwise=False, hidden=32, kp=10.0,
                        kd=2.0, q_v=0.1, lambda_r=10.0, ahead=0, std_c=None),
-    # reacher: polar keypoints with their pairwise angles over 32x32 cells, tanh head, the
-    # standardised risk and the sign term (5 steps ahead, 6 groups).
-    "reacher": dict(second_stride=1, polar=True, pairwise=True, hidden=32, kp=1.0, kd=0.2,
-                    q_v=0.0, lambda_r=1.0, ahead=5, std_c=1.0),
+    # reacher: polar keypoints with their pairwise angles over 32x32 cells, the cells' angles
+    # falling off beyond 0.4, tanh head, the standardised risk and the sign term (5 steps
+    # ahead, 6 groups).
+    "reacher": dict(second_stride=1, polar=True, pairwise=True, hidden=32, falloff=0.4, kp=1.0,
+                    kd=0.2, q_v=0.0, lambda_r=1.0, ahead=5, std_c=1.0),
 }
 
 
@@ -213,7 +218,8 @@ def main():
     torch.manual_seed(0)
     cfg = PRESETS[args.preset]
     du, n = 2, args.batch
-    enc = Encoder(du, cfg["second_stride"], cfg["polar"], cfg["pairwise"], cfg["hidden"])
+    enc = Encoder(du, cfg["second_stride"], cfg["polar"], cfg["pairwise"], cfg["hidden"],
+                  cfg.get("falloff", 0.0))
     dyn = Dynamics(du)
     times = []
     if args.what == "train":

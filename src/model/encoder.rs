@@ -85,6 +85,13 @@ pub struct EncoderConfig {
     /// mix of them already curls the shoulder round an arc at step 1, a shape training keeps.
     #[serde(default = "default_pairwise_init_scale")]
     pub pairwise_init_scale: f64,
+    /// Polar heads: the distance `R` from the centre (image units; the frame's half-width is 1)
+    /// at which a cell's angle enters its keypoint's angle at half weight, each cell's angle
+    /// multiplied by `1 / (1 + (r / R)^2)`. An arm's inner link sweeps only its joint's range,
+    /// so its cells never reach the cut; the outer link and the tip can sweep past it, and
+    /// their cells' angles jump there. `None` or 0: every cell's angle at full weight.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub polar_angle_falloff: Option<f64>,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -115,6 +122,7 @@ impl EncoderConfig {
             init_latent_std: None,
             trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
+            polar_angle_falloff: None,
         }
     }
 
@@ -164,6 +172,14 @@ impl EncoderConfig {
             return Err(Error::config(
                 "model.encoder",
                 "latent_dim and trunk_channels must be positive",
+            ));
+        }
+        if let Some(radius) = self.polar_angle_falloff
+            && !(radius.is_finite() && radius >= 0.0)
+        {
+            return Err(Error::config(
+                "model.encoder.polar_angle_falloff",
+                format!("{radius} is not a distance >= 0 (0: off)"),
             ));
         }
         if let Some(std) = self.init_latent_std
@@ -234,6 +250,7 @@ impl EncoderConfig {
                         )),
                         features: conv(c2, keypoints, 1, 1, 0),
                         pairwise_angles,
+                        angle_falloff: self.polar_angle_falloff.unwrap_or(0.0),
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
                         // About the image centre, cut opposite +x, until
@@ -268,6 +285,8 @@ pub struct KeypointHead {
     features: Conv2d,
     /// Polar keypoints followed by the angle between each pair of them: `K (K - 1) / 2` more.
     pairwise_angles: bool,
+    /// [`EncoderConfig::polar_angle_falloff`], 0 when off.
+    angle_falloff: f64,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -609,6 +628,12 @@ impl KeypointHead {
                 let sin_m = axis.slice(1..2).reshape([1, 1, 1]);
                 let (x, y) = (grid_x.clone(), grid_y.clone());
                 let (angle, radius) = polar_grid(x, y, cos_m, sin_m);
+                let angle = if self.angle_falloff > 0.0 {
+                    let scaled = radius.clone() / self.angle_falloff;
+                    angle / (scaled.powi_scalar(2) + 1.0)
+                } else {
+                    angle
+                };
                 [angle, radius]
             }
             None => [grid_x.clone(), grid_y.clone()],
@@ -1016,6 +1041,42 @@ mod tests {
         config.pairwise_init_scale = -1.0;
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("model.encoder.pairwise_init_scale"), "{err}");
+    }
+
+    #[test]
+    fn angle_falloff_weighs_each_cells_angle_by_its_distance() {
+        let device = cpu_device();
+        let polar = |falloff| EncoderConfig {
+            trunk_channels: [4, 4],
+            head: EncoderHead::SoftArgmax {
+                keypoints: 2,
+                hidden: 0,
+                polar: true,
+                pairwise_angles: false,
+            },
+            polar_angle_falloff: falloff,
+            ..EncoderConfig::new(2)
+        };
+        let grids = |config: EncoderConfig| {
+            let encoder = config.init(&device);
+            let head = encoder.keypoints.expect("a keypoint head");
+            let ([angle, radius], _) = head.coordinate_grids(6, 6, &device);
+            (to_vec(angle), to_vec(radius))
+        };
+        let (full, radius) = grids(polar(None));
+        assert_eq!(grids(polar(Some(0.0))), (full.clone(), radius.clone()));
+        let (weighed, weighed_radius) = grids(polar(Some(0.5)));
+        assert_eq!(radius, weighed_radius);
+        // Cells at 0.5 from the centre keep half their angle; nearer ones more, farther less.
+        for ((&a, &w), &r) in full.iter().zip(&weighed).zip(&radius) {
+            let want = a / (1.0 + (r / 0.5).powi(2));
+            assert!((w - want).abs() < 1e-6, "r {r}: {w} against {want}");
+        }
+        assert!(full.iter().any(|a| a.abs() > 1.0));
+        for bad in [-0.5, f64::NAN, f64::INFINITY] {
+            let err = polar(Some(bad)).validate().unwrap_err().to_string();
+            assert!(err.contains("model.encoder.polar_angle_falloff"), "{err}");
+        }
     }
 
     #[test]

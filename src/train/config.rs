@@ -414,10 +414,13 @@ impl TrainConfig {
             // the angles between keypoints (entering from 0) over 32x32 cells, a
             // latent started at unit spread, orientation by the action response, and the risk
             // on the standardised latent with gains matched to that scale (docs/design.md,
-            // "Reacher").
+            // "Reacher"). The cells' angles count less beyond the elbow, about 0.4 of the
+            // frame's half-width from the shoulder: only the outer link and the fingertip sweep
+            // past the angle's cut.
             config.model.encoder.head = procl_head(true);
             config.model.encoder.pairwise_init_scale = 0.0;
             config.model.encoder.trunk_second_stride = 1;
+            config.model.encoder.polar_angle_falloff = Some(0.4);
             config.model.encoder.init_latent_std = Some(1.0);
             config.loss.risk_latent_std = Some(1.0);
             config.loss.kp = 1.0;

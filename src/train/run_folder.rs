@@ -219,7 +219,6 @@ const RETIRED_OPTIONS: &[(&str, Option<&str>)] = &[
     ("model.encoder.relative_reference_radius", Some("0.0")),
     ("model.encoder.head.with_cartesian", Some("false")),
     ("model.encoder.head.linear_base", Some("false")),
-    ("model.encoder.polar_angle_falloff", Some("null")),
     ("learning_rate_schedule", Some("\"constant\"")),
 ];
 

@@ -377,9 +377,9 @@ encoders = 1",
         ),
         (
             "[model.encoder]
-polar_angle_falloff = 0.4",
+polar_angle_fall_off = 0.4",
             "model.encoder",
-            "polar_angle_falloff",
+            "polar_angle_fall_off",
         ),
         (
             "[model.encoder.head]
