@@ -23,7 +23,8 @@ pub const HUB_CORE_RADIUS_PX: f64 = 1.5;
 /// profile sees too little of the circle about them to tell a hub.
 const HUB_MARGIN_PX: usize = 8;
 /// Pixels nearer the centre than this (image units) are weighed by
-/// [`PixelSpread::quietest_direction`] as if this far: a weight of `1 / r` would blow up there, where the angle means nothing.
+/// [`PixelSpread::quietest_direction`] as if this far: a weight of `1 / r` would blow up there,
+/// where the angle means nothing.
 const MIN_WEIGHT_RADIUS: f64 = 0.05;
 
 /// Each pixel's standard deviation over a set of frames, summed over the three channels:

@@ -143,9 +143,10 @@ pub fn forward_kinematics(q: &[f64; ARM_JOINTS]) -> ArmPose {
 /// the shoulder lift hits its limit; far and high the arm is 2-3 cm short), so the orientation is
 /// a soft term, weak against position: where it is infeasible the gripper tilts by up to ~12 deg
 /// and the grip site still lands within 0.3 mm (measured over 300 random targets: 0.25 mm).
-/// The posture term picks one arm pose out of the redundant ones. It is stiff on the two elbow-side rolls (upper arm and forearm): with them
-/// free, targets near the robot and high have two mirror-image solutions with the elbow swung
-/// left or right, and the pose jumps between them (measured: 0.5 rad jumps for 3 mm moves).
+/// The posture term picks one arm pose out of the redundant ones. It is stiff on the two
+/// elbow-side rolls (upper arm and forearm): with them free, targets near the robot and high
+/// have two mirror-image solutions with the elbow swung left or right, and the pose jumps
+/// between them (measured: 0.5 rad jumps for 3 mm moves).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct IkConfig {
