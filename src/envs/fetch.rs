@@ -47,23 +47,8 @@ impl Default for FetchConfig {
             workspace_hi_m: [1.49, 0.90, 0.685],
             initial_grip_m: [1.3418, 0.7491, 0.5347],
             ik: IkConfig::default(),
-            camera: OrbitCamera {
-                distance_m: 2.5,
-                azimuth_deg: 132.0,
-                elevation_deg: -14.0,
-                lookat_m: [1.3, 0.75, 0.55],
-                fovy_deg: 45.0,
-                full_render_px: 128,
-            },
-            // Sun from above, tilted slightly towards the camera side so the table's front
-            // and side faces differ; shadows fall almost straight down, where the camera sees
-            // them below the gripper.
-            lighting: Lighting {
-                to_light: [0.2, -0.1, 1.0],
-                ambient: 0.35,
-                diffuse: 0.6,
-                headlight: 0.2,
-            },
+            camera: OrbitCamera::default(),
+            lighting: Lighting::default(),
             samples_per_axis: 2,
             floor_rgb: [0.2, 0.2, 0.2],
             table_rgb: [0.93, 0.93, 0.93],

@@ -148,7 +148,7 @@ pub fn forward_kinematics(q: &[f64; ARM_JOINTS]) -> ArmPose {
 /// have two mirror-image solutions with the elbow swung left or right, and the pose jumps
 /// between them (measured: 0.5 rad jumps for 3 mm moves).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct IkConfig {
     /// `w_o`: metres of position error worth one radian of orientation error.
     pub orientation_weight_m_per_rad: f64,

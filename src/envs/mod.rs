@@ -368,6 +368,20 @@ mod tests {
         };
         assert_eq!(pm.camera.height_m, 0.8);
         assert_eq!(pm.camera.fovy_deg, 45.0);
+        let fetch = load("[fetch.camera]\nazimuth_deg = 140.0\n[fetch.lighting]\nambient = 0.5\n[fetch.ik]\nmax_iterations = 50\n").unwrap();
+        let EnvConfig::Fetch(fetch) = &fetch else {
+            panic!("{fetch:?}")
+        };
+        let reach = FetchConfig::default();
+        assert_eq!(fetch.camera.azimuth_deg, 140.0);
+        assert_eq!(fetch.camera.lookat_m, reach.camera.lookat_m);
+        assert_eq!(fetch.lighting.ambient, 0.5);
+        assert_eq!(fetch.lighting.to_light, reach.lighting.to_light);
+        assert_eq!(fetch.ik.max_iterations, 50);
+        assert_eq!(
+            fetch.ik.orientation_weight_m_per_rad,
+            reach.ik.orientation_weight_m_per_rad
+        );
         assert!(load("[fetch]\n").unwrap().is_default());
         for kind in [EnvKind::PointMass, EnvKind::Reacher, EnvKind::Fetch] {
             assert!(EnvConfig::from(kind).is_default());

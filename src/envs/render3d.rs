@@ -159,8 +159,9 @@ impl Mat3 {
 /// from +x, `elevation_deg` negative when looking down. The observation is the centre
 /// `FRAME_PX` x `FRAME_PX` crop of a `full_render_px`-square render with vertical field of view
 /// `fovy_deg`, which is rendered directly as a 64x64 image with the cropped field of view.
+/// A variant file's camera table names only the fields it changes (the rest: FetchReach's).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct OrbitCamera {
     /// Distance from the look-at point, m.
     pub distance_m: f64,
@@ -174,6 +175,20 @@ pub struct OrbitCamera {
     pub fovy_deg: f64,
     /// Side of the render the observation is cropped from, pixels (>= 64).
     pub full_render_px: usize,
+}
+
+impl Default for OrbitCamera {
+    /// FetchReach's camera.
+    fn default() -> Self {
+        Self {
+            distance_m: 2.5,
+            azimuth_deg: 132.0,
+            elevation_deg: -14.0,
+            lookat_m: [1.3, 0.75, 0.55],
+            fovy_deg: 45.0,
+            full_render_px: 128,
+        }
+    }
 }
 
 impl OrbitCamera {
@@ -271,9 +286,10 @@ impl CameraBasis {
     }
 }
 
-/// One directional light that casts shadows, an ambient term and a shadowless headlight.
+/// One directional light that casts shadows, an ambient term and a shadowless headlight. A
+/// variant file's lighting table names only the fields it changes (the rest: Fetch-3D's).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct Lighting {
     /// Direction from the scene towards the light (need not be unit length).
     pub to_light: [f64; 3],
@@ -284,6 +300,20 @@ pub struct Lighting {
     /// Strength of a light at the camera (Lambert on the viewing direction, never shadowed),
     /// like MuJoCo's headlight: it keeps faces turned away from the sun from going flat.
     pub headlight: f64,
+}
+
+impl Default for Lighting {
+    /// Fetch-3D's sun: from above, tilted slightly towards the camera side so the table's
+    /// front and side faces differ; shadows fall almost straight down, where the camera sees
+    /// them below the gripper.
+    fn default() -> Self {
+        Self {
+            to_light: [0.2, -0.1, 1.0],
+            ambient: 0.35,
+            diffuse: 0.6,
+            headlight: 0.2,
+        }
+    }
 }
 
 /// The geometry of one solid, world coordinates, metres.
