@@ -836,18 +836,6 @@ mod tests {
         (a - b).norm() < tol
     }
 
-    /// FetchReach's camera.
-    fn fetch_reach_camera() -> OrbitCamera {
-        OrbitCamera {
-            distance_m: 2.5,
-            azimuth_deg: 132.0,
-            elevation_deg: -14.0,
-            lookat_m: [1.3, 0.75, 0.55],
-            fovy_deg: 45.0,
-            full_render_px: 128,
-        }
-    }
-
     #[test]
     fn primitives_hit_where_expected() {
         let o = Vec3::new(0.0, 0.0, 5.0);
@@ -911,7 +899,7 @@ mod tests {
 
     #[test]
     fn camera_projection_inverts_rays() {
-        let camera = fetch_reach_camera();
+        let camera = OrbitCamera::default();
         let basis = camera.basis();
         // The look-at point is the image centre.
         let (c, r) = camera.project(Vec3::from_array(camera.lookat_m)).unwrap();
@@ -929,7 +917,7 @@ mod tests {
 
     #[test]
     fn bounding_boxes_contain_the_projection() {
-        let camera = fetch_reach_camera();
+        let camera = OrbitCamera::default();
         let basis = camera.basis();
         let centre = Vec3::new(1.2, 0.9, 0.6);
         let radius = 0.1;
