@@ -113,30 +113,67 @@ impl EnvConfig {
         }
     }
 
-    /// Refuses parameters the simulator cannot run, naming the field.
+    /// Refuses parameters the simulator cannot run or the camera cannot draw, naming the field.
     pub fn validate(&self) -> Result<()> {
-        let positive = |field: &str, value: f64| require_positive(self.kind(), field, value);
+        let fields = FieldCheck(self.kind());
         match self {
             EnvConfig::PointMass(c) => {
-                positive("control_dt_s", c.control_dt_s)?;
-                positive("mass_kg", c.mass_kg)?;
-                positive("gear", c.gear)?;
-                positive("joint_limit_m", c.joint_limit_m)?;
-                positive("ball_radius_m", c.ball_radius_m)
+                fields.positive("control_dt_s", c.control_dt_s)?;
+                fields.positive("mass_kg", c.mass_kg)?;
+                fields.non_negative("damping", c.damping)?;
+                fields.positive("gear", c.gear)?;
+                fields.positive("joint_limit_m", c.joint_limit_m)?;
+                fields.positive("ball_radius_m", c.ball_radius_m)?;
+                fields.soft_limits(&c.soft_limits)?;
+                fields.colour("ball_rgb", c.ball_rgb)?;
+                fields.top_down_camera(&c.camera)
             }
-            EnvConfig::Reacher(c) => c.validate(),
+            EnvConfig::Reacher(c) => {
+                fields.non_negative("damping", c.damping)?;
+                fields.soft_limits(&c.soft_limits)?;
+                fields.colour("arm_rgb", c.arm_rgb)?;
+                fields.colour("fingertip_rgb", c.fingertip_rgb)?;
+                // Before the arm's reach is held against the camera's view.
+                fields.top_down_camera(&c.camera)?;
+                c.validate()
+            }
             EnvConfig::Fetch(c) => {
-                positive("control_dt_s", c.control_dt_s)?;
-                positive("max_accel_m_s2", c.max_accel_m_s2)?;
+                fields.positive("control_dt_s", c.control_dt_s)?;
+                fields.positive("max_accel_m_s2", c.max_accel_m_s2)?;
                 let (lo, hi) = (c.workspace_lo_m, c.workspace_hi_m);
-                if (0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
-                    Ok(())
-                } else {
-                    Err(Error::config(
+                if !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
+                    return Err(Error::config(
                         "fetch.workspace_lo_m",
                         format!("{lo:?} must lie below workspace_hi_m {hi:?} on every axis"),
-                    ))
+                    ));
                 }
+                fields.finite("initial_grip_m", &c.initial_grip_m)?;
+                fields.non_negative(
+                    "ik.orientation_weight_m_per_rad",
+                    c.ik.orientation_weight_m_per_rad,
+                )?;
+                fields
+                    .non_negative("ik.posture_weight_m_per_rad", c.ik.posture_weight_m_per_rad)?;
+                fields.non_negative(
+                    "ik.elbow_roll_weight_m_per_rad",
+                    c.ik.elbow_roll_weight_m_per_rad,
+                )?;
+                fields.at_least("ik.max_iterations", c.ik.max_iterations, 1)?;
+                fields.orbit_camera(&c.camera)?;
+                fields.lighting(&c.lighting)?;
+                fields.at_least("samples_per_axis", c.samples_per_axis, 1)?;
+                for (field, rgb) in [
+                    ("floor_rgb", c.floor_rgb),
+                    ("table_rgb", c.table_rgb),
+                    ("sky_rgb", c.sky_rgb),
+                    ("robot_rgb", c.robot_rgb),
+                    ("arm_white_rgb", c.arm_white_rgb),
+                    ("arm_blue_rgb", c.arm_blue_rgb),
+                    ("gripper_rgb", c.gripper_rgb),
+                ] {
+                    fields.colour(field, rgb)?;
+                }
+                Ok(())
             }
         }
     }
@@ -297,6 +334,109 @@ pub fn clip_action<const N: usize>(action: &[f64]) -> [f64; N] {
     })
 }
 
+/// The checks of one environment's configuration fields: each refusal names `env.field`.
+struct FieldCheck(EnvKind);
+
+impl FieldCheck {
+    fn refuse(&self, field: &str, why: String) -> Result<()> {
+        Err(Error::config(format!("{}.{field}", self.0), why))
+    }
+
+    fn positive(&self, field: &str, value: f64) -> Result<()> {
+        require_positive(self.0, field, value)
+    }
+
+    fn non_negative(&self, field: &str, value: f64) -> Result<()> {
+        if value.is_finite() && value >= 0.0 {
+            Ok(())
+        } else {
+            self.refuse(field, format!("{value} must be >= 0"))
+        }
+    }
+
+    fn at_least(&self, field: &str, value: usize, least: usize) -> Result<()> {
+        if value >= least {
+            Ok(())
+        } else {
+            self.refuse(field, format!("{value} must be at least {least}"))
+        }
+    }
+
+    fn finite(&self, field: &str, values: &[f64]) -> Result<()> {
+        if values.iter().all(|v| v.is_finite()) {
+            Ok(())
+        } else {
+            self.refuse(field, format!("{values:?} must be finite"))
+        }
+    }
+
+    /// Strictly between `lo` and `hi`.
+    fn inside(&self, field: &str, value: f64, lo: f64, hi: f64) -> Result<()> {
+        if value > lo && value < hi {
+            Ok(())
+        } else {
+            self.refuse(
+                field,
+                format!("{value} must lie strictly between {lo} and {hi}"),
+            )
+        }
+    }
+
+    fn colour(&self, field: &str, rgb: [f32; 3]) -> Result<()> {
+        if rgb.iter().all(|c| (0.0..=1.0).contains(c)) {
+            Ok(())
+        } else {
+            self.refuse(field, format!("{rgb:?} is not an RGB colour in [0, 1]"))
+        }
+    }
+
+    /// MuJoCo's ranges for `solref` and `solimp`.
+    fn soft_limits(&self, limits: &SoftLimitModel) -> Result<()> {
+        let [dmin, dmax, width, midpoint, power] = limits.solimp;
+        self.positive("soft_limits.timeconst_s", limits.timeconst_s)?;
+        self.positive("soft_limits.dampratio", limits.dampratio)?;
+        for impedance in [dmin, dmax] {
+            self.inside("soft_limits.solimp", impedance, 0.0, 1.0)?;
+        }
+        self.positive("soft_limits.solimp", width)?;
+        self.inside("soft_limits.solimp", midpoint, 0.0, 1.0)?;
+        if power.is_finite() && power >= 1.0 {
+            Ok(())
+        } else {
+            self.refuse("soft_limits.solimp", format!("power {power} must be >= 1"))
+        }
+    }
+
+    fn top_down_camera(&self, camera: &TopDownCamera) -> Result<()> {
+        self.positive("camera.height_m", camera.height_m)?;
+        self.inside("camera.fovy_deg", camera.fovy_deg, 0.0, 180.0)?;
+        self.positive("camera.checker_m", camera.checker_m)
+    }
+
+    fn orbit_camera(&self, camera: &OrbitCamera) -> Result<()> {
+        self.positive("camera.distance_m", camera.distance_m)?;
+        self.finite("camera.azimuth_deg", &[camera.azimuth_deg])?;
+        self.finite("camera.elevation_deg", &[camera.elevation_deg])?;
+        self.finite("camera.lookat_m", &camera.lookat_m)?;
+        self.inside("camera.fovy_deg", camera.fovy_deg, 0.0, 180.0)?;
+        // The observation is a 64x64 crop of the full render.
+        self.at_least("camera.full_render_px", camera.full_render_px, FRAME_PX)
+    }
+
+    fn lighting(&self, lighting: &Lighting) -> Result<()> {
+        let [x, y, z] = lighting.to_light;
+        if !(x.is_finite() && y.is_finite() && z.is_finite() && x.hypot(y).hypot(z) > 0.0) {
+            return self.refuse(
+                "lighting.to_light",
+                format!("{:?} is not a direction", lighting.to_light),
+            );
+        }
+        self.non_negative("lighting.ambient", lighting.ambient)?;
+        self.non_negative("lighting.diffuse", lighting.diffuse)?;
+        self.non_negative("lighting.headlight", lighting.headlight)
+    }
+}
+
 /// Refuses a non-finite or non-positive `value` of the configuration field `env.field`.
 pub(crate) fn require_positive(env: EnvKind, field: &str, value: f64) -> Result<()> {
     if value.is_finite() && value > 0.0 {
@@ -407,6 +547,43 @@ mod tests {
             (
                 "[fetch]\nworkspace_hi_m = [1.0, 0.9, 0.7]\n",
                 "fetch.workspace_lo_m",
+            ),
+            (
+                "[fetch.camera]\nfull_render_px = 0\n",
+                "fetch.camera.full_render_px",
+            ),
+            ("[fetch.camera]\nfovy_deg = 0.0\n", "fetch.camera.fovy_deg"),
+            (
+                "[fetch.camera]\ndistance_m = 0.0\n",
+                "fetch.camera.distance_m",
+            ),
+            ("[fetch]\nsamples_per_axis = 0\n", "fetch.samples_per_axis"),
+            (
+                "[fetch.ik]\nmax_iterations = 0\n",
+                "fetch.ik.max_iterations",
+            ),
+            (
+                "[fetch.lighting]\nambient = -5.0\n",
+                "fetch.lighting.ambient",
+            ),
+            (
+                "[fetch.lighting]\nto_light = [0.0, 0.0, 0.0]\n",
+                "fetch.lighting.to_light",
+            ),
+            ("[fetch]\nsky_rgb = [0.4, 0.8, 255.0]\n", "fetch.sky_rgb"),
+            (
+                "[point-mass.camera]\nfovy_deg = 180.0\n",
+                "point-mass.camera.fovy_deg",
+            ),
+            ("[point-mass]\ndamping = -1.0\n", "point-mass.damping"),
+            (
+                "[reacher.camera]\nheight_m = -1.0\n",
+                "reacher.camera.height_m",
+            ),
+            ("[reacher]\narm_rgb = [0.3, 1.5, 0.8]\n", "reacher.arm_rgb"),
+            (
+                "[reacher.soft_limits]\nsolimp = [0.9, 0.95, 0.001, 0.5, 0.5]\n",
+                "reacher.soft_limits.solimp",
             ),
         ] {
             let message = load(text).unwrap_err().to_string();

@@ -365,6 +365,21 @@ fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_e
         path_str(&strip),
     ]);
     assert!(strip.exists());
+    // A camera that cannot draw the frames is refused by its field, before anything is written.
+    let blind = dir.path().join("blind.toml");
+    std::fs::write(&blind, "[reacher.camera]\nfovy_deg = 0.0\n").unwrap();
+    let blind_strip = dir.path().join("blind.png");
+    fails_with(
+        &[
+            "render",
+            "--env-config",
+            path_str(&blind),
+            "--out",
+            path_str(&blind_strip),
+        ],
+        "reacher.camera.fovy_deg",
+    );
+    assert!(!blind_strip.exists());
     let demo = |extra: &[&str], out: &Path| {
         let mut args = vec![
             "demonstrate",
