@@ -103,7 +103,8 @@ enum Command {
         /// uses: 600 point-mass, 1200 reacher, 600 fetch).
         #[arg(long)]
         steps: Option<u64>,
-        /// Continue the run in --out from its last checkpoint.
+        /// Continue the run in --out from its last checkpoint (with a larger --steps, a finished run
+        /// trains on to that step).
         #[arg(long)]
         resume: bool,
         /// cpu, or cuda when built with --features cuda.

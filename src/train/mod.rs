@@ -272,7 +272,13 @@ fn run_training<O: Objective>(
     let _writer = crate::fsutil::FolderLock::acquire(&run.dir)?;
     if resume {
         let saved = run.load_config()?;
-        if &saved != config {
+        // A larger budget trains the run on (nothing in training depends on the total); any
+        // other change would train another model from this one's weights.
+        let budget_aside = TrainConfig {
+            steps: config.steps,
+            ..saved.clone()
+        };
+        if &budget_aside != config {
             return Err(Error::config(
                 "resume",
                 format!(
@@ -293,8 +299,22 @@ fn run_training<O: Objective>(
                 ),
             ));
         }
+        if config.steps < meta.step {
+            return Err(Error::config(
+                "steps",
+                format!(
+                    "{} is below the step {} the run in {} has reached",
+                    config.steps,
+                    meta.step,
+                    run.dir.display()
+                ),
+            ));
+        }
         (model, adam, start) = (m, a, meta.step);
         truncate_metrics(&run.metrics(), start, &metrics_header(O::METRICS))?;
+        if saved.steps != config.steps {
+            crate::fsutil::write_json(&run.config(), config)?;
+        }
     } else {
         if run.checkpoint().exists() {
             return Err(Error::config(

@@ -167,6 +167,35 @@ fn kill_minus_9_at_any_step_then_resume_gives_the_same_weights() {
 }
 
 #[test]
+fn a_finished_run_trained_on_to_a_larger_budget_gives_the_weights_of_one_trained_there() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, long) = tiny_training(dir.path(), 40);
+    let reference = dir.path().join("reference");
+    succeeds(&train_args(&data, &long, &reference));
+    let (_, short) = tiny_training(dir.path(), 20);
+    let out = dir.path().join("extended");
+    succeeds(&train_args(&data, &short, &out));
+    let mut args = train_args(&data, &short, &out);
+    args.extend(["--steps", "40", "--resume"]);
+    succeeds(&args);
+    let weights = |run: &Path| std::fs::read(run.join("model.safetensors")).unwrap();
+    assert_eq!(weights(&out), weights(&reference));
+    let rows = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
+    assert_eq!(rows.lines().count(), 41);
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["steps"], 40);
+    // A budget below the step reached, or another change, is refused and leaves the run as is.
+    let mut args = train_args(&data, &short, &out);
+    args.push("--resume");
+    fails_with(&args, "steps");
+    let mut args = train_args(&data, &long, &out);
+    args.extend(["--seed", "7", "--resume"]);
+    fails_with(&args, "differs from this run's configuration");
+    assert_eq!(weights(&out), weights(&reference));
+}
+
+#[test]
 fn a_full_disk_at_a_checkpoint_keeps_the_last_one_and_resumes() {
     let dir = tempfile::tempdir().unwrap();
     let (data, config_path) = tiny_training(dir.path(), 10);
