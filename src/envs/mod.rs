@@ -128,15 +128,7 @@ impl EnvConfig {
                 fields.colour("ball_rgb", c.ball_rgb)?;
                 fields.top_down_camera(&c.camera)
             }
-            EnvConfig::Reacher(c) => {
-                fields.non_negative("damping", c.damping)?;
-                fields.soft_limits(&c.soft_limits)?;
-                fields.colour("arm_rgb", c.arm_rgb)?;
-                fields.colour("fingertip_rgb", c.fingertip_rgb)?;
-                // Before the arm's reach is held against the camera's view.
-                fields.top_down_camera(&c.camera)?;
-                c.validate()
-            }
+            EnvConfig::Reacher(c) => c.validate(),
             EnvConfig::Fetch(c) => {
                 fields.positive("control_dt_s", c.control_dt_s)?;
                 fields.positive("max_accel_m_s2", c.max_accel_m_s2)?;
@@ -335,18 +327,22 @@ pub fn clip_action<const N: usize>(action: &[f64]) -> [f64; N] {
 }
 
 /// The checks of one environment's configuration fields: each refusal names `env.field`.
-struct FieldCheck(EnvKind);
+pub(crate) struct FieldCheck(pub(crate) EnvKind);
 
 impl FieldCheck {
     fn refuse(&self, field: &str, why: String) -> Result<()> {
         Err(Error::config(format!("{}.{field}", self.0), why))
     }
 
-    fn positive(&self, field: &str, value: f64) -> Result<()> {
-        require_positive(self.0, field, value)
+    pub(crate) fn positive(&self, field: &str, value: f64) -> Result<()> {
+        if value.is_finite() && value > 0.0 {
+            Ok(())
+        } else {
+            self.refuse(field, format!("{value} must be positive"))
+        }
     }
 
-    fn non_negative(&self, field: &str, value: f64) -> Result<()> {
+    pub(crate) fn non_negative(&self, field: &str, value: f64) -> Result<()> {
         if value.is_finite() && value >= 0.0 {
             Ok(())
         } else {
@@ -382,7 +378,7 @@ impl FieldCheck {
         }
     }
 
-    fn colour(&self, field: &str, rgb: [f32; 3]) -> Result<()> {
+    pub(crate) fn colour(&self, field: &str, rgb: [f32; 3]) -> Result<()> {
         if rgb.iter().all(|c| (0.0..=1.0).contains(c)) {
             Ok(())
         } else {
@@ -391,7 +387,7 @@ impl FieldCheck {
     }
 
     /// MuJoCo's ranges for `solref` and `solimp`.
-    fn soft_limits(&self, limits: &SoftLimitModel) -> Result<()> {
+    pub(crate) fn soft_limits(&self, limits: &SoftLimitModel) -> Result<()> {
         let [dmin, dmax, width, midpoint, power] = limits.solimp;
         self.positive("soft_limits.timeconst_s", limits.timeconst_s)?;
         self.positive("soft_limits.dampratio", limits.dampratio)?;
@@ -407,7 +403,7 @@ impl FieldCheck {
         }
     }
 
-    fn top_down_camera(&self, camera: &TopDownCamera) -> Result<()> {
+    pub(crate) fn top_down_camera(&self, camera: &TopDownCamera) -> Result<()> {
         self.positive("camera.height_m", camera.height_m)?;
         self.inside("camera.fovy_deg", camera.fovy_deg, 0.0, 180.0)?;
         self.positive("camera.checker_m", camera.checker_m)
@@ -434,18 +430,6 @@ impl FieldCheck {
         self.non_negative("lighting.ambient", lighting.ambient)?;
         self.non_negative("lighting.diffuse", lighting.diffuse)?;
         self.non_negative("lighting.headlight", lighting.headlight)
-    }
-}
-
-/// Refuses a non-finite or non-positive `value` of the configuration field `env.field`.
-pub(crate) fn require_positive(env: EnvKind, field: &str, value: f64) -> Result<()> {
-    if value.is_finite() && value > 0.0 {
-        Ok(())
-    } else {
-        Err(Error::config(
-            format!("{env}.{field}"),
-            format!("{value} must be positive"),
-        ))
     }
 }
 

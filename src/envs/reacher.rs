@@ -2,7 +2,7 @@
 
 use super::mujoco::{Dynamics2, Joint, Mat2, SoftLimitModel, euler_step};
 use super::render2d::{Canvas, Shape, TopDownCamera};
-use super::{Env, EnvKind, Frame, State, clip_action, require_positive, validate_state};
+use super::{Env, EnvKind, FieldCheck, Frame, State, clip_action, validate_state};
 use crate::error::{Error, Result};
 
 /// Physical and visual parameters of the reacher (defaults from dm_control). A TOML table of
@@ -83,6 +83,13 @@ impl ReacherConfig {
     /// non-positive length, mass or period, an empty joint range, or an arm whose reach leaves
     /// the image.
     pub fn validate(&self) -> Result<()> {
+        let fields = FieldCheck(EnvKind::Reacher);
+        fields.non_negative("damping", self.damping)?;
+        fields.soft_limits(&self.soft_limits)?;
+        fields.colour("arm_rgb", self.arm_rgb)?;
+        fields.colour("fingertip_rgb", self.fingertip_rgb)?;
+        // Before the arm's reach is held against the camera's view.
+        fields.top_down_camera(&self.camera)?;
         let positive = [
             ("control_dt_s", self.control_dt_s),
             ("link1_length_m", self.link1_length_m),
@@ -97,7 +104,7 @@ impl ReacherConfig {
             ("fingertip_radius_m", self.fingertip_radius_m),
         ];
         for (field, value) in positive {
-            require_positive(EnvKind::Reacher, field, value)?;
+            fields.positive(field, value)?;
         }
         for (field, [lo, hi]) in [
             ("shoulder_range_deg", self.shoulder_range_deg),
