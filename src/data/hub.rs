@@ -127,17 +127,30 @@ impl PixelSpread {
     pub fn quietest_direction(&self, centre: [f64; 2]) -> [f64; 2] {
         const BINS: usize = 72;
         const SMOOTH: isize = 3;
+        // Each pixel is spread over SUB x SUB points across its area: a pixel next to the
+        // centre spans tens of degrees, and binned by its midpoint alone it would drop its
+        // heavy `1 / r` weight into one bin, which a shift of the centre by a hundredth of a
+        // pixel moves to the next (the cut then jumps between the ends of the quiet sector).
+        const SUB: usize = 4;
+        let pixel = 2.0 / FRAME_PX as f64;
+        let offsets: Vec<f64> = (0..SUB)
+            .map(|i| ((i as f64 + 0.5) / SUB as f64 - 0.5) * pixel)
+            .collect();
         let mut histogram = [0f64; BINS];
         for (p, &w) in self.std.iter().enumerate() {
-            let [x, y] = pixel_coordinates(p);
-            let (x, y) = (x - centre[0], y - centre[1]);
-            let turn = y.atan2(x).rem_euclid(std::f64::consts::TAU) / std::f64::consts::TAU;
-            // 1 / r: every distance from the centre counts equally per angle (there are r
-            // times more pixels per degree at radius r), so an arm's inner link, whose sweep is
-            // bounded by the joint limit, weighs as much as the outer one, whose sweep
-            // overhangs it.
-            let r = x.hypot(y).max(MIN_WEIGHT_RADIUS);
-            histogram[((turn * BINS as f64) as usize).min(BINS - 1)] += w / r;
+            let [px, py] = pixel_coordinates(p);
+            for dy in &offsets {
+                for dx in &offsets {
+                    let (x, y) = (px + dx - centre[0], py + dy - centre[1]);
+                    let turn = y.atan2(x).rem_euclid(std::f64::consts::TAU) / std::f64::consts::TAU;
+                    // 1 / r: every distance from the centre counts equally per angle (there
+                    // are r times more pixels per degree at radius r), so an arm's inner link,
+                    // whose sweep is bounded by the joint limit, weighs as much as the outer
+                    // one, whose sweep overhangs it.
+                    let r = x.hypot(y).max(MIN_WEIGHT_RADIUS);
+                    histogram[((turn * BINS as f64) as usize).min(BINS - 1)] += w / r;
+                }
+            }
         }
         let smoothed = |b: usize| -> f64 {
             (-SMOOTH..=SMOOTH)
@@ -293,6 +306,36 @@ mod tests {
         let frame = [90u8; FRAME_BYTES];
         let spread = PixelSpread::of_frames(std::iter::repeat_n(&frame[..], 4));
         assert_eq!(spread.hub(), None);
+    }
+
+    /// The cut lies in the sector the reacher's links never sweep (shoulder limits +-160
+    /// degrees: the 40 degrees about the base's -x direction), wherever within a pixel of the
+    /// base the hub is placed.
+    #[test]
+    fn the_quietest_direction_about_an_arms_base_is_its_unswept_sector_and_holds_still() {
+        let reacher = ReacherConfig {
+            base_m: [0.035, -0.025],
+            ..Default::default()
+        };
+        let (col, row) = reacher.camera.project(reacher.base_m[0], reacher.base_m[1]);
+        let (behind_col, behind_row) = reacher
+            .camera
+            .project(reacher.base_m[0] - 0.1, reacher.base_m[1]);
+        let unswept = (behind_row - row).atan2(behind_col - col);
+        let spread = spread_of(&EnvConfig::Reacher(reacher), 400);
+        for (d_col, d_row) in [(0.0, 0.0), (0.3, 0.0), (-0.3, 0.0), (0.0, 0.3), (0.0, -0.3)] {
+            let centre = [col + d_col, row + d_row].map(|p| 2.0 * p / FRAME_PX as f64 - 1.0);
+            let [x, y] = spread.quietest_direction(centre);
+            let off = (y.atan2(x) - unswept + std::f64::consts::PI)
+                .rem_euclid(std::f64::consts::TAU)
+                - std::f64::consts::PI;
+            assert!(
+                off.abs().to_degrees() <= 12.5,
+                "centre moved ({d_col}, {d_row}) px: the cut is {:.1} degrees from the unswept \
+                 sector's middle",
+                off.to_degrees()
+            );
+        }
     }
 
     /// The reacher's hub is its base, at the image centre or moved off it; the point mass and
