@@ -477,6 +477,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     hub.core_share,
                     procl::data::HUB_MAX_CORE_SHARE
                 );
+                if hub.is_accepted() {
+                    println!(
+                        "polar keypoints' cut, where the frames change least about the hub: \
+                         {:.1} degrees (0 along the columns, 90 down the rows)",
+                        spread.quietest_angle_deg(hub.centre)
+                    );
+                }
             }
         }
         Command::Train {

@@ -74,8 +74,10 @@ def collect(
 def info(data: PathLike) -> dict:
     """Validates a dataset and describes it: env (or "custom"), episodes, steps, dims, dt, and
     ``hub``, the point its frames turn about (``pixel`` as column and row, ``radial_r2``,
-    ``core_share``, and whether it is ``accepted`` as a hub, which picks custom data's
-    recipe), or None for frames that never change."""
+    ``core_share``, whether it is ``accepted`` as a hub, which picks custom data's recipe,
+    and ``cut_deg``, where a polar head about it is cut: the direction the frames change
+    least, in degrees, 0 along the columns and 90 down the rows), or None for frames that
+    never change."""
     return _procl.info(os.fspath(data))
 
 

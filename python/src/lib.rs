@@ -642,13 +642,15 @@ fn dataset_summary<'py>(
 fn info<'py>(py: Python<'py>, data: PathBuf) -> PyResult<Bound<'py, PyDict>> {
     let dataset = procl::data::Dataset::load(&data).map_err(py_err)?;
     let summary = dataset_summary(py, &dataset)?;
-    let hub = match procl::data::PixelSpread::of_frames(dataset.every_frame()).hub_candidate() {
+    let spread = procl::data::PixelSpread::of_frames(dataset.every_frame());
+    let hub = match spread.hub_candidate() {
         Some(hub) => {
             let fields = PyDict::new(py);
             fields.set_item("pixel", hub.pixels().to_vec())?;
             fields.set_item("radial_r2", hub.radial_r2)?;
             fields.set_item("core_share", hub.core_share)?;
             fields.set_item("accepted", hub.is_accepted())?;
+            fields.set_item("cut_deg", spread.quietest_angle_deg(hub.centre))?;
             Some(fields)
         }
         None => None,

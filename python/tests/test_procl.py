@@ -157,6 +157,7 @@ def test_a_variant_collected_as_custom_records_its_simulator(tmp_path):
     # The frames turn about the moved shoulder, at pixel (35.6, 34.6).
     hub = procl.info(data)["hub"]
     assert hub["accepted"] and np.allclose(hub["pixel"], [35.6, 34.6], atol=1.0), hub
+    assert 0.0 <= hub["cut_deg"] < 360.0, hub
     plain = procl.collect("reacher", tmp_path / "plain.npz", transitions=400, episode_len=10)
     assert plain["env_config_json"] is None
     assert not np.array_equal(np.load(data)["obs"], np.load(tmp_path / "plain.npz")["obs"])

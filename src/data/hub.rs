@@ -164,6 +164,13 @@ impl PixelSpread {
         [angle.cos(), angle.sin()]
     }
 
+    /// [`Self::quietest_direction`] about `centre` as an angle in degrees, `[0, 360)`: 0
+    /// along the columns, 90 down the rows. A polar head about `centre` is cut there.
+    pub fn quietest_angle_deg(&self, centre: [f64; 2]) -> f64 {
+        let [x, y] = self.quietest_direction(centre);
+        y.atan2(x).to_degrees().rem_euclid(360.0)
+    }
+
     fn total_variance(&self) -> f64 {
         let mean = self.std.iter().sum::<f64>() / self.std.len() as f64;
         self.std.iter().map(|s| (s - mean).powi(2)).sum()

@@ -251,6 +251,10 @@ fn a_variant_recorded_as_custom_trains_with_the_recipe_its_frames_call_for_and_e
     };
     let args = collect(&["--as-custom"], &data);
     succeeds(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let info = succeeds(&["info", "--data", path_str(&data)]);
+    let info = String::from_utf8_lossy(&info.stdout);
+    assert!(info.contains("frames turn about a hub at"), "{info}");
+    assert!(info.contains("polar keypoints' cut"), "{info}");
     let loaded = Dataset::load(&data).unwrap();
     assert_eq!(loaded.meta.env, None);
     let recorded = loaded.meta.env_config.clone().unwrap();
