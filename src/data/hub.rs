@@ -114,7 +114,7 @@ impl PixelSpread {
             .max_by(|a, b| a.0.0.total_cmp(&b.0.0))?;
         let ((radial_r2, profile_peak), pixels) = fine;
         Some(Hub {
-            centre: pixels.map(|p| 2.0 * p / FRAME_PX as f64 - 1.0),
+            centre: image_point(pixels),
             radial_r2,
             core_share: self.core_mean(pixels) / profile_peak.max(f64::MIN_POSITIVE),
         })
@@ -133,9 +133,8 @@ impl PixelSpread {
         // pixel moves to the next (the cut then jumps between the ends of the quiet sector).
         const SUB: usize = 4;
         let pixel = 2.0 / FRAME_PX as f64;
-        let offsets: Vec<f64> = (0..SUB)
-            .map(|i| ((i as f64 + 0.5) / SUB as f64 - 0.5) * pixel)
-            .collect();
+        let offsets: [f64; SUB] =
+            std::array::from_fn(|i| ((i as f64 + 0.5) / SUB as f64 - 0.5) * pixel);
         let mut histogram = [0f64; BINS];
         for (p, &w) in self.std.iter().enumerate() {
             let [px, py] = pixel_coordinates(p);
@@ -226,10 +225,15 @@ impl PixelSpread {
     }
 }
 
+/// Image coordinates of a point given in pixels from the frame's top-left corner (the inverse
+/// of [`Hub::pixels`]).
+fn image_point(pixels: [f64; 2]) -> [f64; 2] {
+    pixels.map(|p| 2.0 * p / FRAME_PX as f64 - 1.0)
+}
+
 /// Image coordinates of pixel `p`'s centre (row-major index).
 fn pixel_coordinates(p: usize) -> [f64; 2] {
-    let coord = |i: usize| (2.0 * i as f64 + 1.0) / FRAME_PX as f64 - 1.0;
-    [coord(p % FRAME_PX), coord(p / FRAME_PX)]
+    image_point([(p % FRAME_PX) as f64 + 0.5, (p / FRAME_PX) as f64 + 0.5])
 }
 
 /// Distance in pixels from pixel `p`'s centre to `centre` (pixels from the top-left corner).
@@ -331,7 +335,7 @@ mod tests {
         let unswept = (behind_row - row).atan2(behind_col - col);
         let spread = spread_of(&EnvConfig::Reacher(reacher), 400);
         for (d_col, d_row) in [(0.0, 0.0), (0.3, 0.0), (-0.3, 0.0), (0.0, 0.3), (0.0, -0.3)] {
-            let centre = [col + d_col, row + d_row].map(|p| 2.0 * p / FRAME_PX as f64 - 1.0);
+            let centre = image_point([col + d_col, row + d_row]);
             let [x, y] = spread.quietest_direction(centre);
             let off = (y.atan2(x) - unswept + std::f64::consts::PI)
                 .rem_euclid(std::f64::consts::TAU)
