@@ -92,12 +92,6 @@ pub struct EncoderConfig {
     /// their cells' angles jump there. `None` or 0: every cell's angle at full weight.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub polar_angle_falloff: Option<f64>,
-    /// Polar heads: the distance `r0` from the centre (image units) at which a cell's angle
-    /// enters at half weight on the way in, each cell's angle multiplied by
-    /// `(r / r0)^2 / (1 + (r / r0)^2)`. Cells near the centre span every angle within a
-    /// link's width, so a link resting beside the cut crosses it there. `None` or 0: off.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub polar_angle_inner_fade: Option<f64>,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -129,7 +123,6 @@ impl EncoderConfig {
             trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
             polar_angle_falloff: None,
-            polar_angle_inner_fade: None,
         }
     }
 
@@ -181,18 +174,13 @@ impl EncoderConfig {
                 "latent_dim and trunk_channels must be positive",
             ));
         }
-        for (field, radius) in [
-            ("polar_angle_falloff", self.polar_angle_falloff),
-            ("polar_angle_inner_fade", self.polar_angle_inner_fade),
-        ] {
-            if let Some(radius) = radius
-                && !(radius.is_finite() && radius >= 0.0)
-            {
-                return Err(Error::config(
-                    format!("model.encoder.{field}"),
-                    format!("{radius} is not a distance >= 0 (0: off)"),
-                ));
-            }
+        if let Some(radius) = self.polar_angle_falloff
+            && !(radius.is_finite() && radius >= 0.0)
+        {
+            return Err(Error::config(
+                "model.encoder.polar_angle_falloff",
+                format!("{radius} is not a distance >= 0 (0: off)"),
+            ));
         }
         if let Some(std) = self.init_latent_std
             && !(std.is_finite() && std >= 0.0)
@@ -263,7 +251,6 @@ impl EncoderConfig {
                         features: conv(c2, keypoints, 1, 1, 0),
                         pairwise_angles,
                         angle_falloff: self.polar_angle_falloff.unwrap_or(0.0),
-                        angle_inner_fade: self.polar_angle_inner_fade.unwrap_or(0.0),
                         hidden: hidden_layer,
                         out: LinearConfig::new(out_inputs, self.latent_dim).init(device),
                         // About the image centre, cut opposite +x, until
@@ -300,8 +287,6 @@ pub struct KeypointHead {
     pairwise_angles: bool,
     /// [`EncoderConfig::polar_angle_falloff`], 0 when off.
     angle_falloff: f64,
-    /// [`EncoderConfig::polar_angle_inner_fade`], 0 when off.
-    angle_inner_fade: f64,
     /// Log of the per-keypoint softmax sharpness, `[K]`.
     log_sharpness: Param<Tensor<1>>,
     /// Optional tanh layer between the keypoint coordinates and `out`.
@@ -646,12 +631,6 @@ impl KeypointHead {
                 let angle = if self.angle_falloff > 0.0 {
                     let scaled = radius.clone() / self.angle_falloff;
                     angle / (scaled.powi_scalar(2) + 1.0)
-                } else {
-                    angle
-                };
-                let angle = if self.angle_inner_fade > 0.0 {
-                    let scaled = (radius.clone() / self.angle_inner_fade).powi_scalar(2);
-                    angle * scaled.clone() / (scaled + 1.0)
                 } else {
                     angle
                 };
@@ -1065,7 +1044,7 @@ mod tests {
     }
 
     #[test]
-    fn angle_falloff_and_inner_fade_weigh_each_cells_angle_by_its_distance() {
+    fn angle_falloff_weighs_each_cells_angle_by_its_distance() {
         let device = cpu_device();
         let polar = |falloff| EncoderConfig {
             trunk_channels: [4, 4],
@@ -1097,30 +1076,6 @@ mod tests {
         for bad in [-0.5, f64::NAN, f64::INFINITY] {
             let err = polar(Some(bad)).validate().unwrap_err().to_string();
             assert!(err.contains("model.encoder.polar_angle_falloff"), "{err}");
-        }
-        // The inner fade: cells at 0.25 keep half their angle, nearer ones less, farther more;
-        // it multiplies the falloff's weight.
-        let both = EncoderConfig {
-            polar_angle_inner_fade: Some(0.25),
-            ..polar(Some(0.5))
-        };
-        let (faded, faded_radius) = grids(both.clone());
-        assert_eq!(radius, faded_radius);
-        for ((&a, &w), &r) in full.iter().zip(&faded).zip(&radius) {
-            let inner = (r / 0.25).powi(2);
-            let want = a / (1.0 + (r / 0.5).powi(2)) * inner / (1.0 + inner);
-            assert!((w - want).abs() < 1e-6, "r {r}: {w} against {want}");
-        }
-        for bad in [-0.5, f64::NAN] {
-            let config = EncoderConfig {
-                polar_angle_inner_fade: Some(bad),
-                ..both.clone()
-            };
-            let err = config.validate().unwrap_err().to_string();
-            assert!(
-                err.contains("model.encoder.polar_angle_inner_fade"),
-                "{err}"
-            );
         }
     }
 

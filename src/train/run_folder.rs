@@ -215,6 +215,7 @@ const RETIRED_OPTIONS: &[(&str, Option<&str>)] = &[
     ("model.encoder.keypoint_upsample", Some("1")),
     ("model.encoder.polar_cut_deg", Some("null")),
     ("model.encoder.polar_cut_fade_deg", Some("0.0")),
+    ("model.encoder.polar_angle_inner_fade", Some("0.0")),
     ("model.encoder.relative_angles", Some("false")),
     ("model.encoder.relative_reference_radius", Some("0.0")),
     ("model.encoder.head.with_cartesian", Some("false")),
