@@ -6,17 +6,19 @@ pub mod checkpoint;
 mod config;
 mod nvae;
 pub mod orientation;
+mod restarts;
 mod run_folder;
 
 pub use batches::loss_inputs;
 pub(crate) use batches::{normal_tensor, step_rng};
 pub(crate) use config::merge;
 pub use config::{
-    ConfigBase, Method, Preset, Recipe, TrainConfig, config_from_table, config_from_toml,
-    read_config_table, training_budget,
+    ConfigBase, Method, Preset, Recipe, TrainConfig, candidate_seed, config_from_table,
+    config_from_toml, read_config_table, training_budget,
 };
 pub use nvae::{EpisodeSplit, PlateauRule, WindowFrames, window_frames};
-pub use run_folder::{DataRecord, RunPaths, TrainedModel};
+pub use restarts::candidate_paths;
+pub use run_folder::{DataRecord, RunPaths, TrainedModel, training_clock, training_seconds};
 
 use std::io::Write;
 use std::ops::ControlFlow;
@@ -41,6 +43,8 @@ pub struct TrainSummary {
     pub steps_done: u64,
     pub last: Option<StepValues>,
     pub seconds: f64,
+    /// With restarts: the candidate the run kept and the seed it trained with.
+    pub kept_candidate: Option<(u64, u64)>,
 }
 
 /// What one method brings to the shared training loop ([`run_training`]): its model, its loss
@@ -209,6 +213,9 @@ pub fn train_interruptible(
                 data.steps()
             ),
         ));
+    }
+    if config.restarts > 1 {
+        return restarts::train_restarts(config, data, run, resume, device, &mut progress);
     }
     let record = DataRecord::of(data);
     let device = &device.clone().autodiff();
@@ -380,6 +387,7 @@ fn run_training<O: Objective>(
                 steps_done: step + 1,
                 last,
                 seconds: clock.elapsed().as_secs_f64(),
+                kept_candidate: None,
             });
         }
         if flow.is_break() && step + 1 < config.steps {
@@ -400,6 +408,7 @@ fn run_training<O: Objective>(
         steps_done: config.steps,
         last,
         seconds: clock.elapsed().as_secs_f64(),
+        kept_candidate: None,
     })
 }
 

@@ -244,6 +244,134 @@ fn resumed_run_equals_uninterrupted_run() {
     assert_eq!(rows_a, rows_b, "metrics differ (seconds column ignored)");
 }
 
+/// A run's `restarts.csv` as (seed, risk, kept) rows.
+fn restarts_rows(dir: &Path) -> Vec<(u64, f64, bool)> {
+    let text = std::fs::read_to_string(dir.join("restarts.csv")).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("candidate,seed,risk,kept"));
+    lines
+        .enumerate()
+        .map(|(i, line)| {
+            let fields: Vec<&str> = line.split(',').collect();
+            assert_eq!(fields[0], i.to_string(), "{line}");
+            (
+                fields[1].parse().unwrap(),
+                fields[2].parse().unwrap(),
+                fields[3].parse().unwrap(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn restarts_keep_the_candidate_with_the_lowest_final_risk() {
+    let data = point_mass_data();
+    let dir = tempfile::tempdir().unwrap();
+    let single = tiny_config(20, 10);
+    let config = TrainConfig {
+        restarts: 3,
+        ..single.clone()
+    };
+    let out = dir.path().join("out");
+    let mut steps = vec![];
+    train(
+        &config,
+        &data,
+        &RunPaths::new(&out),
+        false,
+        &cpu_device(),
+        |s, _| steps.push(s),
+    )
+    .unwrap();
+    assert_eq!(
+        steps,
+        (1..=60).collect::<Vec<_>>(),
+        "steps count over all candidates"
+    );
+
+    // Candidate 0 is the run without restarts; the others train with their own seeds.
+    let plain = dir.path().join("plain");
+    train_into(&single, &data, &plain, false);
+    let candidate = |i| procl::train::candidate_paths(&RunPaths::new(&out), i).dir;
+    assert_same_checkpoint(&candidate(0), &plain, "candidate 0 against the plain run");
+    let rows = restarts_rows(&out);
+    let seeds: Vec<u64> = rows.iter().map(|r| r.0).collect();
+    assert_eq!(
+        seeds,
+        (0..3)
+            .map(|i| procl::train::candidate_seed(5, i))
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(seeds, [5, 1_000_005, 2_000_005]);
+
+    // The risk is the mean of the last 50 logged steps (here every step), and the kept
+    // candidate is the lowest; the three differ, so the choice is a real one.
+    for (i, (_, risk, _)) in rows.iter().enumerate() {
+        let logged = metrics_rows(&candidate(i as u64));
+        let want = mean_column(&logged, 5);
+        assert!(
+            (risk - want).abs() < 1e-5,
+            "candidate {i}: {risk} against {want}"
+        );
+    }
+    let lowest = (0..3)
+        .min_by(|&a, &b| rows[a].1.total_cmp(&rows[b].1))
+        .unwrap();
+    assert!(rows[0].1 != rows[1].1 && rows[1].1 != rows[2].1);
+    let kept: Vec<bool> = rows.iter().map(|r| r.2).collect();
+    assert_eq!(kept, (0..3).map(|i| i == lowest).collect::<Vec<_>>());
+    assert_same_checkpoint(
+        &out,
+        &candidate(lowest as u64),
+        "the run against its kept candidate",
+    );
+    assert_eq!(metrics_rows(&out), metrics_rows(&candidate(lowest as u64)));
+    // The run's clock charges it for every candidate.
+    let total: f64 = (0..3)
+        .map(|i| procl::train::training_seconds(&RunPaths::new(candidate(i))).unwrap())
+        .sum();
+    let seconds = procl::train::training_seconds(&RunPaths::new(&out)).unwrap();
+    assert!((seconds - total).abs() < 0.01, "{seconds} against {total}");
+    assert_eq!(RunPaths::new(&out).load_config().unwrap(), config);
+
+    // A second fresh run is refused; an interrupted one continues its candidates and ends
+    // where the uninterrupted one did.
+    let err = train_error(&config, &data, &out, false);
+    assert!(err.contains("already holds a trained model"), "{err}");
+    let stopped = dir.path().join("stopped");
+    let err = procl::train::train_interruptible(
+        &config,
+        &data,
+        &RunPaths::new(&stopped),
+        false,
+        &cpu_device(),
+        |step, _| {
+            if step == 30 {
+                std::ops::ControlFlow::Break(())
+            } else {
+                std::ops::ControlFlow::Continue(())
+            }
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("stopped after step 10"), "{err}");
+    train_into(&config, &data, &stopped, true);
+    assert_same_checkpoint(&out, &stopped, "interrupted restarts against uninterrupted");
+
+    // The NewtonianVAE has no risk to rank by.
+    let table: toml::Table = "restarts = 2".parse().unwrap();
+    let err = config_from_table(table, EnvKind::PointMass, Some(Method::Nvae))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("restarts") && err.contains("NewtonianVAE"),
+        "{err}"
+    );
+    let err = config_err("restarts = 0");
+    assert!(err.contains("restarts"), "{err}");
+}
+
 #[test]
 fn a_snapshot_holds_the_weights_of_a_run_that_stopped_at_its_step() {
     let data = point_mass_data();
