@@ -278,22 +278,7 @@ fn run_training<O: Objective>(
     let mut start = 0;
     let _writer = crate::fsutil::FolderLock::acquire(&run.dir)?;
     if resume {
-        let saved = run.load_config()?;
-        // A larger budget trains the run on (nothing in training depends on the total); any
-        // other change would train another model from this one's weights.
-        let budget_aside = TrainConfig {
-            steps: config.steps,
-            ..saved.clone()
-        };
-        if &budget_aside != config {
-            return Err(Error::config(
-                "resume",
-                format!(
-                    "{} differs from this run's configuration",
-                    run.config().display()
-                ),
-            ));
-        }
+        let saved = saved_config_for_resume(run, config)?;
         run.check_same_data(record)?;
         let (m, a, meta) = load_checkpoint(&run.checkpoint(), model, device)?;
         if meta.stopped_early {
@@ -323,15 +308,7 @@ fn run_training<O: Objective>(
             crate::fsutil::write_json(&run.config(), config)?;
         }
     } else {
-        if run.checkpoint().exists() {
-            return Err(Error::config(
-                "out",
-                format!(
-                    "{} already holds a trained model; pass --resume to continue it, or choose another --out",
-                    run.dir.display()
-                ),
-            ));
-        }
+        refuse_trained_folder(run)?;
         model = objective.prepare(model);
         crate::fsutil::write_json(&run.config(), config)?;
         crate::fsutil::write_json(&run.data_record(), record)?;
@@ -410,6 +387,41 @@ fn run_training<O: Objective>(
         seconds: clock.elapsed().as_secs_f64(),
         kept_candidate: None,
     })
+}
+
+/// On `--resume`: the run's saved configuration, which must be `config` but for the budget. A
+/// larger budget trains the run on (nothing in training depends on the total); any other
+/// change would train another model from this one's weights.
+fn saved_config_for_resume(run: &RunPaths, config: &TrainConfig) -> Result<TrainConfig> {
+    let saved = run.load_config()?;
+    let budget_aside = TrainConfig {
+        steps: config.steps,
+        ..saved.clone()
+    };
+    if &budget_aside != config {
+        return Err(Error::config(
+            "resume",
+            format!(
+                "{} differs from this run's configuration",
+                run.config().display()
+            ),
+        ));
+    }
+    Ok(saved)
+}
+
+/// A fresh run refuses a folder that already holds trained weights.
+fn refuse_trained_folder(run: &RunPaths) -> Result<()> {
+    if run.checkpoint().exists() {
+        return Err(Error::config(
+            "out",
+            format!(
+                "{} already holds a trained model; pass --resume to continue it, or choose another --out",
+                run.dir.display()
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Keeps the weights after `step` steps in the run's snapshot folder for that step, with the

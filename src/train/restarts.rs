@@ -34,29 +34,11 @@ pub(super) fn train_restarts(
     progress: &mut dyn FnMut(u64, &StepValues) -> ControlFlow<()>,
 ) -> Result<TrainSummary> {
     let _writer = crate::fsutil::FolderLock::acquire(&run.dir)?;
+    // A larger budget trains every candidate on, as `--resume` does a single run.
     if resume {
-        // A larger budget trains every candidate on, as `--resume` does a single run.
-        let budget_aside = TrainConfig {
-            steps: config.steps,
-            ..run.load_config()?
-        };
-        if &budget_aside != config {
-            return Err(Error::config(
-                "resume",
-                format!(
-                    "{} differs from this run's configuration",
-                    run.config().display()
-                ),
-            ));
-        }
-    } else if run.checkpoint().exists() {
-        return Err(Error::config(
-            "out",
-            format!(
-                "{} already holds a trained model; pass --resume to continue it, or choose another --out",
-                run.dir.display()
-            ),
-        ));
+        super::saved_config_for_resume(run, config)?;
+    } else {
+        super::refuse_trained_folder(run)?;
     }
     crate::fsutil::write_json(&run.config(), config)?;
     crate::fsutil::write_json(&run.data_record(), &DataRecord::of(data))?;
