@@ -103,10 +103,6 @@ enum Command {
         /// uses: 600 point-mass, 1200 reacher, 600 fetch).
         #[arg(long)]
         steps: Option<u64>,
-        /// Train this many candidates from different seeds and keep the one whose final
-        /// Lyapunov risk is lowest (`restarts.csv`; the others stay in `candidates/`).
-        #[arg(long)]
-        restarts: Option<u64>,
         /// Continue the run in --out from its last checkpoint (with a larger --steps, a finished run
         /// trains on to that step).
         #[arg(long)]
@@ -498,7 +494,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             preset_env,
             seed,
             steps,
-            restarts,
             resume,
             device,
         } => {
@@ -521,9 +516,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             if let Some(steps) = steps {
                 table.insert("steps".into(), toml::Value::Integer(steps as i64));
             }
-            if let Some(restarts) = restarts {
-                table.insert("restarts".into(), toml::Value::Integer(restarts as i64));
-            }
             let config =
                 procl::train::config_from_table(table, base, method).with_context(|| {
                     format!(
@@ -535,7 +527,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 })?;
             let device = procl::model::device_by_name(&device)?;
             let run = RunPaths::new(&out);
-            let bar = progress_bar(config.total_steps(), "train");
+            let bar = progress_bar(config.steps, "train");
             let summary =
                 procl::train::train(&config, &dataset, &run, resume, &device, |step, v| {
                     if step % 10 == 1 {
@@ -550,12 +542,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 summary.seconds,
                 out.display()
             );
-            if let Some((candidate, seed)) = summary.kept_candidate {
-                println!(
-                    "kept candidate {candidate} of {} (seed {seed}): the lowest final Lyapunov risk (restarts.csv)",
-                    config.restarts
-                );
-            }
             if let Some(v) = summary.last {
                 println!("final losses: {v}");
             }

@@ -89,7 +89,6 @@ def train(
     config: Union[None, PathLike, Mapping[str, Any]] = None,
     seed: Optional[int] = None,
     steps: Optional[int] = None,
-    restarts: Optional[int] = None,
     preset_env: Optional[str] = None,
     resume: bool = False,
 ) -> dict:
@@ -98,10 +97,8 @@ def train(
     ``method`` is "procl" (default), "pc3" or "nvae". ``config`` is a TOML file or a dict of
     the same keys over the preset (``procl config`` prints them). ``preset_env`` picks the
     recipe for custom data ("generic", "point-mass", "reacher" or "fetch"; by default the
-    reacher's when the frames turn about a hub, else the generic one). ``restarts`` trains
-    that many candidates from different seeds and keeps the one whose final Lyapunov risk is
-    lowest. Returns steps done, seconds, the final losses and, with restarts, the kept
-    candidate's index and seed.
+    reacher's when the frames turn about a hub, else the generic one). Returns steps done,
+    seconds and the final losses.
     """
     overrides = dict(config) if isinstance(config, Mapping) else {}
     config_path = None if config is None or isinstance(config, Mapping) else os.fspath(config)
@@ -109,8 +106,6 @@ def train(
         overrides["seed"] = seed
     if steps is not None:
         overrides["steps"] = steps
-    if restarts is not None:
-        overrides["restarts"] = restarts
     return _procl.train(
         os.fspath(data),
         os.fspath(out),

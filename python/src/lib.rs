@@ -661,7 +661,7 @@ fn info<'py>(py: Python<'py>, data: PathBuf) -> PyResult<Bound<'py, PyDict>> {
 
 /// Trains on `data` into the run folder `out`, as `procl train` does: the TOML file
 /// `config_path`, then the top-level keys of `overrides_json` (a config table as JSON), over
-/// the preset. Returns steps done, seconds, final losses and the candidate kept by restarts.
+/// the preset. Returns steps done, seconds and final losses.
 #[pyfunction]
 #[pyo3(signature = (data, out, method=None, config_path=None, overrides_json=None, preset_env=None, resume=false))]
 #[allow(clippy::too_many_arguments)]
@@ -726,7 +726,6 @@ fn train<'py>(
     result.set_item("steps", summary.steps_done)?;
     result.set_item("seconds", summary.seconds)?;
     result.set_item("final_losses", summary.last.map(|v| v.to_string()))?;
-    result.set_item("kept_candidate", summary.kept_candidate)?;
     Ok(result)
 }
 

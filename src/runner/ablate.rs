@@ -269,7 +269,7 @@ pub fn run_grid(
                     &run,
                     resume,
                     &cpu_device(),
-                    |step, values| progress(name, *seed, step, config.total_steps(), values),
+                    |step, values| progress(name, *seed, step, config.steps, values),
                 )?;
                 let train_seconds = start.elapsed().as_secs_f64();
                 let diagnostics = write_env_diagnostics(&run)?;

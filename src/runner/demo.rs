@@ -118,7 +118,7 @@ pub fn run_demo(config: &DemoConfig, mut log: impl FnMut(&str)) -> Result<DemoRe
             shrink_networks(&mut train_config);
         }
         let mut every_30_s = ThrottledLine::new(std::time::Duration::from_secs(30));
-        let steps = train_config.total_steps();
+        let steps = train_config.steps;
         let outcome = train_or_reuse(&train_config, &dataset, &run, |step, values| {
             if let Some(eta) = every_30_s.due(step, steps) {
                 log(&format!(

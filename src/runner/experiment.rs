@@ -537,7 +537,7 @@ fn train_and_evaluate(
     run: &RunPaths,
     protocol: &ReachConfig,
 ) -> Result<()> {
-    let steps = train_config.total_steps();
+    let steps = train_config.steps;
     stages.run(&format!("{name}/train"), |progress| {
         let outcome = train_or_reuse(train_config, data, run, |step, _| progress(step, steps))?;
         if read_diagnostics(run).is_none() {

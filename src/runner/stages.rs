@@ -10,7 +10,6 @@ use crate::eval::{Controller, EvalOutputs, ReachConfig, ReachReport, evaluate_ru
 use crate::losses::StepValues;
 use crate::model::{EncoderHead, cpu_device};
 use crate::train::{RunPaths, TrainConfig, train};
-pub use crate::train::{training_clock, training_seconds};
 
 /// Whether a stage did its work now or found it done by an earlier invocation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -152,6 +151,34 @@ pub fn train_or_reuse(
     }
     train(config, data, run, has_checkpoint, &cpu_device(), progress)?;
     Ok(Outcome::Ran)
+}
+
+/// Wall-clock training seconds of a run over every invocation that trained it, or `None`
+/// without metrics.
+pub fn training_seconds(run: &RunPaths) -> Option<f64> {
+    let clock = training_clock(run)?;
+    Some(clock.last().map_or(0.0, |(_, seconds)| *seconds))
+}
+
+/// `(step, wall-clock training seconds up to and including it)` for every step in the run's
+/// `metrics.csv`, over every invocation that trained it (the file's `seconds` column restarts
+/// from 0 on each resume), or `None` without metrics.
+pub fn training_clock(run: &RunPaths) -> Option<Vec<(u64, f64)>> {
+    let text = std::fs::read_to_string(run.metrics()).ok()?;
+    let (mut before, mut last) = (0.0, 0.0);
+    let mut clock = vec![];
+    for (step, seconds) in text.lines().skip(1).filter_map(|line| {
+        let step = line.split(',').next()?.parse::<u64>().ok()?;
+        let seconds = line.rsplit(',').next()?.parse::<f64>().ok()?;
+        Some((step, seconds))
+    }) {
+        if seconds < last {
+            before += last;
+        }
+        last = seconds;
+        clock.push((step, before + seconds));
+    }
+    Some(clock)
 }
 
 /// Whether `output` (an evaluation, tracking or diagnostics file of `run`) was written after

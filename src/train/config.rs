@@ -98,13 +98,6 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Optimiser steps.
     pub steps: u64,
-    /// Candidates trained from different seeds, each for `steps` (candidate 0 with `seed`,
-    /// candidate `i` with [`candidate_seed`]); the run keeps the one whose Lyapunov risk over
-    /// its last [`RESTART_SCORE_STEPS`] steps is lowest. A seed that folds the latent ends
-    /// with a higher risk than one that does not, and the risk needs no true state, so
-    /// custom data is ranked as well (docs/design.md, "Restarts"). 1: train once.
-    #[serde(default = "one", skip_serializing_if = "is_one")]
-    pub restarts: u64,
     /// Samples per batch (`K` of the CPC loss).
     pub batch_size: usize,
     /// Adam learning rate.
@@ -150,25 +143,6 @@ pub struct TrainConfig {
 
 fn is_zero(value: &u64) -> bool {
     *value == 0
-}
-
-fn one() -> u64 {
-    1
-}
-
-fn is_one(value: &u64) -> bool {
-    *value == 1
-}
-
-/// Steps at the end of a candidate's training whose mean Lyapunov risk ranks it among the
-/// [`TrainConfig::restarts`]: one step's batch risk varies by tens of percent.
-pub const RESTART_SCORE_STEPS: usize = 50;
-
-/// The seed [`TrainConfig::restarts`] trains candidate `candidate` with: `seed` itself for
-/// candidate 0, so one candidate is the run without restarts, and seeds a million apart after
-/// it, so the candidates of nearby seeds do not share weights.
-pub fn candidate_seed(seed: u64, candidate: u64) -> u64 {
-    seed.wrapping_add(candidate.wrapping_mul(1_000_000))
 }
 
 fn default_orientation_margin() -> f64 {
@@ -365,7 +339,6 @@ impl TrainConfig {
             control_dt_s: None,
             seed: 0,
             steps: training_budget(env),
-            restarts: 1,
             batch_size: 128,
             learning_rate: 1e-3,
             checkpoint_every: 500,
@@ -526,11 +499,6 @@ impl TrainConfig {
         }
     }
 
-    /// Optimiser steps over every candidate of [`Self::restarts`].
-    pub fn total_steps(&self) -> u64 {
-        self.steps * self.restarts
-    }
-
     /// Rejects invalid values with the field's name.
     pub fn validate(&self) -> Result<()> {
         match (self.env, self.control_dt_s) {
@@ -550,18 +518,6 @@ impl TrainConfig {
         }
         if self.steps == 0 {
             return Err(Error::config("steps", "must be at least 1"));
-        }
-        if self.restarts == 0 {
-            return Err(Error::config(
-                "restarts",
-                "must be at least 1 (1: train once)",
-            ));
-        }
-        if self.restarts > 1 && self.method == Method::Nvae {
-            return Err(Error::config(
-                "restarts",
-                "rank candidates by the Lyapunov risk, which the NewtonianVAE does not compute",
-            ));
         }
         if !(0.0..1.0).contains(&self.orientation_margin) {
             return Err(Error::config(

@@ -6,19 +6,17 @@ pub mod checkpoint;
 mod config;
 mod nvae;
 pub mod orientation;
-mod restarts;
 mod run_folder;
 
 pub use batches::loss_inputs;
 pub(crate) use batches::{normal_tensor, step_rng};
 pub(crate) use config::merge;
 pub use config::{
-    ConfigBase, Method, Preset, Recipe, TrainConfig, candidate_seed, config_from_table,
-    config_from_toml, read_config_table, training_budget,
+    ConfigBase, Method, Preset, Recipe, TrainConfig, config_from_table, config_from_toml,
+    read_config_table, training_budget,
 };
 pub use nvae::{EpisodeSplit, PlateauRule, WindowFrames, window_frames};
-pub use restarts::candidate_paths;
-pub use run_folder::{DataRecord, RunPaths, TrainedModel, training_clock, training_seconds};
+pub use run_folder::{DataRecord, RunPaths, TrainedModel};
 
 use std::io::Write;
 use std::ops::ControlFlow;
@@ -43,8 +41,6 @@ pub struct TrainSummary {
     pub steps_done: u64,
     pub last: Option<StepValues>,
     pub seconds: f64,
-    /// With restarts: the candidate the run kept and the seed it trained with.
-    pub kept_candidate: Option<(u64, u64)>,
 }
 
 /// What one method brings to the shared training loop ([`run_training`]): its model, its loss
@@ -214,9 +210,6 @@ pub fn train_interruptible(
             ),
         ));
     }
-    if config.restarts > 1 {
-        return restarts::train_restarts(config, data, run, resume, device, &mut progress);
-    }
     let record = DataRecord::of(data);
     let device = &device.clone().autodiff();
     match &config.nvae {
@@ -278,7 +271,22 @@ fn run_training<O: Objective>(
     let mut start = 0;
     let _writer = crate::fsutil::FolderLock::acquire(&run.dir)?;
     if resume {
-        let saved = saved_config_for_resume(run, config)?;
+        let saved = run.load_config()?;
+        // A larger budget trains the run on (nothing in training depends on the total); any
+        // other change would train another model from this one's weights.
+        let budget_aside = TrainConfig {
+            steps: config.steps,
+            ..saved.clone()
+        };
+        if &budget_aside != config {
+            return Err(Error::config(
+                "resume",
+                format!(
+                    "{} differs from this run's configuration",
+                    run.config().display()
+                ),
+            ));
+        }
         run.check_same_data(record)?;
         let (m, a, meta) = load_checkpoint(&run.checkpoint(), model, device)?;
         if meta.stopped_early {
@@ -308,7 +316,15 @@ fn run_training<O: Objective>(
             crate::fsutil::write_json(&run.config(), config)?;
         }
     } else {
-        refuse_trained_folder(run)?;
+        if run.checkpoint().exists() {
+            return Err(Error::config(
+                "out",
+                format!(
+                    "{} already holds a trained model; pass --resume to continue it, or choose another --out",
+                    run.dir.display()
+                ),
+            ));
+        }
         model = objective.prepare(model);
         crate::fsutil::write_json(&run.config(), config)?;
         crate::fsutil::write_json(&run.data_record(), record)?;
@@ -364,7 +380,6 @@ fn run_training<O: Objective>(
                 steps_done: step + 1,
                 last,
                 seconds: clock.elapsed().as_secs_f64(),
-                kept_candidate: None,
             });
         }
         if flow.is_break() && step + 1 < config.steps {
@@ -385,43 +400,7 @@ fn run_training<O: Objective>(
         steps_done: config.steps,
         last,
         seconds: clock.elapsed().as_secs_f64(),
-        kept_candidate: None,
     })
-}
-
-/// On `--resume`: the run's saved configuration, which must be `config` but for the budget. A
-/// larger budget trains the run on (nothing in training depends on the total); any other
-/// change would train another model from this one's weights.
-fn saved_config_for_resume(run: &RunPaths, config: &TrainConfig) -> Result<TrainConfig> {
-    let saved = run.load_config()?;
-    let budget_aside = TrainConfig {
-        steps: config.steps,
-        ..saved.clone()
-    };
-    if &budget_aside != config {
-        return Err(Error::config(
-            "resume",
-            format!(
-                "{} differs from this run's configuration",
-                run.config().display()
-            ),
-        ));
-    }
-    Ok(saved)
-}
-
-/// A fresh run refuses a folder that already holds trained weights.
-fn refuse_trained_folder(run: &RunPaths) -> Result<()> {
-    if run.checkpoint().exists() {
-        return Err(Error::config(
-            "out",
-            format!(
-                "{} already holds a trained model; pass --resume to continue it, or choose another --out",
-                run.dir.display()
-            ),
-        ));
-    }
-    Ok(())
 }
 
 /// Keeps the weights after `step` steps in the run's snapshot folder for that step, with the

@@ -293,34 +293,6 @@ pub enum TrainedModel {
     Nvae(NvaeModel),
 }
 
-/// Wall-clock training seconds of a run over every invocation that trained it, or `None`
-/// without metrics.
-pub fn training_seconds(run: &RunPaths) -> Option<f64> {
-    let clock = training_clock(run)?;
-    Some(clock.last().map_or(0.0, |(_, seconds)| *seconds))
-}
-
-/// `(step, wall-clock training seconds up to and including it)` for every step in the run's
-/// `metrics.csv`, over every invocation that trained it (the file's `seconds` column restarts
-/// from 0 on each resume), or `None` without metrics.
-pub fn training_clock(run: &RunPaths) -> Option<Vec<(u64, f64)>> {
-    let text = std::fs::read_to_string(run.metrics()).ok()?;
-    let (mut before, mut last) = (0.0, 0.0);
-    let mut clock = vec![];
-    for (step, seconds) in text.lines().skip(1).filter_map(|line| {
-        let step = line.split(',').next()?.parse::<u64>().ok()?;
-        let seconds = line.rsplit(',').next()?.parse::<f64>().ok()?;
-        Some((step, seconds))
-    }) {
-        if seconds < last {
-            before += last;
-        }
-        last = seconds;
-        clock.push((step, before + seconds));
-    }
-    Some(clock)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
