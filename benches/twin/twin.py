@@ -36,7 +36,8 @@ class Encoder(nn.Module):
     """procl's soft-argmax encoder: two convs, 1x1 feature maps, per-keypoint sharpness,
     Cartesian or polar keypoints (with the angles between them), a linear or tanh head."""
 
-    def __init__(self, du, second_stride, polar, pairwise, hidden, falloff=0.0, keypoints=16):
+    def __init__(self, du, second_stride, polar, pairwise, hidden, falloff=0.0, moving_cut=False,
+                 keypoints=16):
         super().__init__()
         self.conv1 = nn.Conv2d(3, 16, 4, stride=2, padding=1)
         self.conv2 = nn.Conv2d(16, 32, 3, stride=second_stride, padding=1)
@@ -58,6 +59,23 @@ class Encoder(nn.Module):
             angle = angle / (1 + r2 / falloff**2)
         self.register_buffer("angle", angle)
         self.register_buffer("radius", r2.sqrt())
+        self.moving_cut = moving_cut
+        if moving_cut:
+            # Each frame's cut opposite its direction from the still background
+            # (model.encoder.polar_moving_cut): the cells' raw angles, their fades at the hub
+            # and falloff weights, and each pixel's faded unit direction.
+            self.register_buffer("cell_angle", torch.atan2(gy, gx))
+            self.register_buffer("cell_fade", r2 / (r2 + FADE_RADIUS**2))
+            weight = 1 / (1 + r2 / falloff**2) if falloff > 0 else torch.ones_like(r2)
+            self.register_buffer("cell_weight", weight)
+            px, py = pixel_grid(64, 64)
+            pr2 = px**2 + py**2
+            pfade = pr2 / (pr2 + FADE_RADIUS**2)
+            pangle = torch.atan2(py, px)
+            self.register_buffer("pixel_cos", (pfade * pangle.cos()).reshape(1, 64, 64))
+            self.register_buffer("pixel_sin", (pfade * pangle.sin()).reshape(1, 64, 64))
+            self.register_buffer("background", torch.zeros(1, 3, 64, 64))
+            self.axis = 0.0
         pairs = torch.triu_indices(keypoints, keypoints, 1)
         self.register_buffer("upper", pairs[0] * keypoints + pairs[1])
 
@@ -72,7 +90,9 @@ class Encoder(nn.Module):
         def expected(grid):
             return (attention * grid).sum(dim=2, keepdim=True)
 
-        if self.polar:
+        if self.polar and self.moving_cut:
+            coords = [expected(self.frame_angles(frames)), expected(self.radius)]
+        elif self.polar:
             coords = [expected(self.angle), expected(self.radius)]
         else:
             coords = [expected(self.grid_x), expected(self.grid_y)]
@@ -89,6 +109,21 @@ class Encoder(nn.Module):
         if self.hidden is not None:
             feats = torch.tanh(self.hidden(feats))
         return self.out(feats) @ self.transform.T
+
+
+    def frame_angles(self, frames):
+        """Each frame's cells' angles, `[n, 1, cells]`, measured from its own direction."""
+        with torch.no_grad():
+            d = (frames - self.background).abs().sum(1)
+            psi = torch.atan2((d * self.pixel_sin).sum((1, 2)), (d * self.pixel_cos).sum((1, 2)))
+
+            def wrap(a):
+                return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+
+            big_psi = wrap(psi - self.axis).reshape(-1, 1, 1)
+            offset = wrap(self.cell_angle - psi.reshape(-1, 1, 1))
+            before_cut = ((math.pi - offset.abs()) / (math.pi / 4)).clamp(max=1.0)
+            return (big_psi + self.cell_fade * offset * before_cut) * self.cell_weight
 
 
 class Dynamics(nn.Module):
@@ -154,10 +189,10 @@ PRESETS = {
     "point-mass": dict(second_stride=2, polar=False, pairwise=False, hidden=32, kp=10.0,
                        kd=2.0, q_v=0.1, lambda_r=10.0, ahead=0, std_c=None),
     # reacher: polar keypoints with their pairwise angles over 32x32 cells, the cells' angles
-    # falling off beyond 0.4, tanh head, the standardised risk and the sign term (5 steps
-    # ahead, 6 groups).
-    "reacher": dict(second_stride=1, polar=True, pairwise=True, hidden=32, falloff=0.4, kp=1.0,
-                    kd=0.2, q_v=0.0, lambda_r=1.0, ahead=5, std_c=1.0),
+    # falling off beyond 0.4 and cut opposite each frame's arm, tanh head, the standardised risk
+    # and the sign term (5 steps ahead, 6 groups).
+    "reacher": dict(second_stride=1, polar=True, pairwise=True, hidden=32, falloff=0.4,
+                    moving_cut=True, kp=1.0, kd=0.2, q_v=0.0, lambda_r=1.0, ahead=5, std_c=1.0),
 }
 
 
@@ -219,7 +254,7 @@ def main():
     cfg = PRESETS[args.preset]
     du, n = 2, args.batch
     enc = Encoder(du, cfg["second_stride"], cfg["polar"], cfg["pairwise"], cfg["hidden"],
-                  cfg.get("falloff", 0.0))
+                  cfg.get("falloff", 0.0), cfg.get("moving_cut", False))
     dyn = Dynamics(du)
     times = []
     if args.what == "train":

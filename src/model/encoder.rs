@@ -8,9 +8,10 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::POLAR_FADE_RADIUS;
 use super::host_encoder::{HostConv, HostEncoder, HostHead, HostLinear};
+use super::polar_reference::PolarReference;
 use super::trunk::{Trunk, TrunkLayer, TrunkOutput, TrunkSoftArgmax, TrunkTape};
 use crate::data::PixelSpread;
-use crate::envs::FRAME_PX;
+use crate::envs::{FRAME_BYTES, FRAME_PX};
 use crate::error::{Error, Result};
 
 /// How the conv features become `h`.
@@ -92,6 +93,11 @@ pub struct EncoderConfig {
     /// their cells' angles jump there. `None` or 0: every cell's angle at full weight.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub polar_angle_falloff: Option<f64>,
+    /// Polar heads: each frame's cut moves to the side opposite the direction in which the
+    /// frame differs most from the still background, so no part of the arm crosses it (see
+    /// `polar_reference.rs`). Off: one cut for every frame, where the frames change least.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub polar_moving_cut: bool,
 }
 
 fn default_pairwise_init_scale() -> f64 {
@@ -123,6 +129,7 @@ impl EncoderConfig {
             trunk_second_stride: default_trunk_second_stride(),
             pairwise_init_scale: default_pairwise_init_scale(),
             polar_angle_falloff: None,
+            polar_moving_cut: false,
         }
     }
 
@@ -257,6 +264,11 @@ impl EncoderConfig {
                         // [`Encoder::place_polar_frame`] sees the data.
                         polar_centre: polar.then(|| fixed_vector([0.0, 0.0], device)),
                         polar_axis: polar.then(|| fixed_vector([1.0, 0.0], device)),
+                        // Placed by [`Encoder::place_moving_cut`] from the data.
+                        polar_background: (polar && self.polar_moving_cut)
+                            .then(|| fixed_values(vec![0.0; FRAME_BYTES], device)),
+                        polar_reference_axis: (polar && self.polar_moving_cut)
+                            .then(|| fixed_vector([1.0, 0.0], device)),
                     }),
                 )
             }
@@ -298,6 +310,10 @@ pub struct KeypointHead {
     /// Polar coordinates only: the unit direction `(cos m, sin m)` at which angles are 0; they
     /// are cut at `m + pi`. Not trained (excluded from init and the optimiser).
     polar_axis: Option<Param<Tensor<1>>>,
+    /// With [`EncoderConfig::polar_moving_cut`]: the still background (`FRAME_BYTES` network
+    /// inputs) and the axis `(cos m, sin m)` of the frames' own directions. Not trained.
+    polar_background: Option<Param<Tensor<1>>>,
+    polar_reference_axis: Option<Param<Tensor<1>>>,
 }
 
 /// Name of the polar head's non-trained axis parameter.
@@ -306,13 +322,20 @@ pub(crate) const POLAR_AXIS: &str = "polar_axis";
 /// reacher run) load with the image centre `(0, 0)`, the centre they were trained with.
 pub(crate) const POLAR_CENTRE: &str = "polar_centre";
 
+/// Name of the moving cut's non-trained background parameter.
+pub(crate) const POLAR_BACKGROUND: &str = "polar_background";
+/// Name of the moving cut's non-trained axis parameter.
+pub(crate) const POLAR_REFERENCE_AXIS: &str = "polar_reference_axis";
+
 /// A parameter that training leaves alone.
 fn fixed_vector(values: [f32; 2], device: &Device) -> Param<Tensor<1>> {
-    Param::from_tensor(Tensor::from_data(
-        TensorData::new(values.to_vec(), [2]),
-        device,
-    ))
-    .set_require_grad(false)
+    fixed_values(values.to_vec(), device)
+}
+
+fn fixed_values(values: Vec<f32>, device: &Device) -> Param<Tensor<1>> {
+    let n = values.len();
+    Param::from_tensor(Tensor::from_data(TensorData::new(values, [n]), device))
+        .set_require_grad(false)
 }
 
 /// The encoder `e`. Exactly one of the heads is present.
@@ -430,6 +453,40 @@ impl Encoder {
         self
     }
 
+    /// With [`EncoderConfig::polar_moving_cut`]: the still background of `frames` and the axis
+    /// of their directions about the polar centre, so each frame's cut falls opposite its arm
+    /// and the directions' own cut where none of the frames points (no-op otherwise). Run once
+    /// before training, after [`Self::place_polar_frame`]; `frames` is called twice.
+    pub fn place_moving_cut<'a, I: Iterator<Item = &'a [u8]>>(
+        mut self,
+        frames: impl Fn() -> I,
+    ) -> Self {
+        let Some(centre) = self.polar_centre() else {
+            return self;
+        };
+        let Some(head) = self.keypoints.as_mut() else {
+            return self;
+        };
+        let (Some(background_param), Some(axis_param)) = (
+            head.polar_background.as_mut(),
+            head.polar_reference_axis.as_mut(),
+        ) else {
+            return self;
+        };
+        let device = axis_param.val().device();
+        let background = PolarReference::background_of(frames());
+        let reference = PolarReference::new(centre, background.clone(), [1.0, 0.0], 1, 0.0);
+        let mut input = vec![0.0; FRAME_BYTES];
+        let directions = frames().map(|frame| {
+            super::pixel_inputs(frame, &mut input);
+            reference.direction(&input)
+        });
+        let axis = PolarReference::axis_for(directions);
+        *background_param = fixed_values(background, &device);
+        *axis_param = fixed_vector(axis, &device);
+        self
+    }
+
     /// The polar head's centre `(x, y)` in image coordinates (`[-1, 1]`, `(0, 0)` the image
     /// centre): angles and distances are measured about it.
     pub fn polar_centre(&self) -> Option<[f32; 2]> {
@@ -447,13 +504,23 @@ impl Encoder {
 
     /// The head's output before the orientation `Q`.
     fn forward_unoriented(&self, frames: Tensor<4>) -> Tensor<2> {
+        let reference = self
+            .keypoints
+            .as_ref()
+            .and_then(|head| head.polar_reference(self.keypoint_side()));
+        let angle_grids = reference.map(|reference| reference_grids(&reference, &frames));
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
         let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16], or 32x32 at stride 1
         let x = match &self.keypoints {
             Some(head) => head.features.forward(x), // [n, K, 16, 16] (32x32 at stride 1)
             None => x,
         };
-        self.head_from_trunk(x)
+        self.head_from_trunk(x, angle_grids)
+    }
+
+    /// Side of the keypoint maps: 64 pixels through conv1 and conv2.
+    fn keypoint_side(&self) -> usize {
+        host_conv(&self.conv2).out_side(host_conv(&self.conv1).out_side(FRAME_PX))
     }
 
     /// The trunk run on the host in training: conv1 and conv2 (each with its ReLU) and, with
@@ -493,6 +560,7 @@ impl Encoder {
             soft_argmax: Some(TrunkSoftArgmax {
                 log_sharpness: head.log_sharpness.val(),
                 grids,
+                reference: head.polar_reference(side),
             }),
         }
     }
@@ -512,7 +580,7 @@ impl Encoder {
         }
         let tape = TrunkTape::forward(self.trunk(), frames, device);
         let raw = match tape.output() {
-            TrunkOutput::Maps(x) => self.head_from_trunk(x),
+            TrunkOutput::Maps(x) => self.head_from_trunk(x, None),
             // A trunk ends in the soft-argmax exactly when the head has keypoints.
             TrunkOutput::Expectations(e) => self
                 .keypoints
@@ -524,8 +592,9 @@ impl Encoder {
     }
 
     /// The head's output before `Q`, from the trunk's output: conv2's (MLP head) or the
-    /// keypoint feature maps.
-    fn head_from_trunk(&self, x: Tensor<4>) -> Tensor<2> {
+    /// keypoint feature maps; `angle_grids` (`[n, 1, cells]`) replace the fixed angle grid
+    /// with each frame's own under a moving cut.
+    fn head_from_trunk(&self, x: Tensor<4>, angle_grids: Option<Tensor<3>>) -> Tensor<2> {
         if let Some(head) = &self.mlp {
             let x = relu(head.conv3.forward(x)); // [n, 32, 8, 8]
             let n = x.dims()[0];
@@ -540,8 +609,11 @@ impl Encoder {
         let sharpness = head.log_sharpness.val().exp().reshape([1, k, 1]);
         let logits = x.reshape([n, k, rows * cols]) * sharpness; // [n, K, cells]
         let attention = softmax(logits, 2); // [n, K, cells]
-        let expectations = head
-            .expectation_grids(rows, cols, &attention.device())
+        let mut grids = head.expectation_grids(rows, cols, &attention.device());
+        if let Some(angle_grids) = angle_grids {
+            grids[0] = angle_grids;
+        }
+        let expectations = grids
             .into_iter()
             .map(|grid| (attention.clone() * grid).sum_dim(2)) // [n, K, 1]
             .collect();
@@ -569,6 +641,7 @@ impl Encoder {
                     features,
                     sharpness: super::to_vec(head.log_sharpness.val().exp()),
                     grids: grids.into_iter().map(super::to_vec).collect(),
+                    reference: head.polar_reference(side),
                     pairwise: head.pairwise_angles,
                     hidden: head.hidden.as_ref().map(host_linear),
                     out: host_linear(&head.out),
@@ -602,6 +675,20 @@ fn host_linear(layer: &Linear) -> HostLinear {
 }
 
 impl KeypointHead {
+    /// The moving cut's reference for maps of `side x side` cells, when the head has one.
+    pub(crate) fn polar_reference(&self, side: usize) -> Option<PolarReference> {
+        let background = super::to_vec(self.polar_background.as_ref()?.val());
+        let axis = super::to_vec(self.polar_reference_axis.as_ref()?.val());
+        let centre = super::to_vec(self.polar_centre.as_ref()?.val());
+        Some(PolarReference::new(
+            [centre[0], centre[1]],
+            background,
+            [axis[0], axis[1]],
+            side,
+            self.angle_falloff,
+        ))
+    }
+
     /// The per-cell values whose expectations under a keypoint's attention are its features
     /// (the polar angle and radius about the polar centre, or the cell's `(x, y)`), and the
     /// cells' `(x, y)` (about the polar centre for a polar head): `[1, 1, rows * cols]` each.
@@ -678,6 +765,28 @@ impl KeypointHead {
             None => self.out.forward(features),
         }
     }
+}
+
+/// Each frame's angle grid under `reference`: frames `[n, 3, 64, 64]` -> `[n, 1, cells]`.
+fn reference_grids(reference: &PolarReference, frames: &Tensor<4>) -> Tensor<3> {
+    let n = frames.dims()[0];
+    let planar = super::to_vec(frames.clone());
+    let plane = FRAME_PX * FRAME_PX;
+    let cells = reference.cells();
+    let mut input = vec![0.0; FRAME_BYTES];
+    let mut grids = vec![0.0; n * cells];
+    for (frame, grid) in planar
+        .chunks_exact(FRAME_BYTES)
+        .zip(grids.chunks_exact_mut(cells))
+    {
+        for (p, rgb) in input.chunks_exact_mut(3).enumerate() {
+            for (c, v) in rgb.iter_mut().enumerate() {
+                *v = frame[c * plane + p];
+            }
+        }
+        reference.angle_grid(reference.direction(&input), grid);
+    }
+    Tensor::from_data(TensorData::new(grids, [n, 1, cells]), &frames.device())
 }
 
 /// Rewrites `layer` so each output `y_j` becomes `(y_j - mean_j) scale_j` (`mean`, `scale`:

@@ -9,6 +9,7 @@ use gemm::Parallelism;
 
 use super::POLAR_FADE_RADIUS;
 use super::direct_conv::{self, DirectConv};
+use super::polar_reference::PolarReference;
 use super::soft_argmax::soft_argmax;
 use super::winograd::Winograd3x3;
 use crate::envs::FRAME_PX;
@@ -393,6 +394,8 @@ pub(crate) enum HostHead {
         /// The per-cell values whose expectations are the keypoint features, `[cells]` each:
         /// `(x, y)` or the polar `(angle, radius)`, then with `pairwise` the `(x, y)`.
         grids: Vec<Vec<f32>>,
+        /// Under a moving cut, what gives each frame its own first (angle) grid.
+        reference: Option<PolarReference>,
         pairwise: bool,
         hidden: Option<HostLinear>,
         out: HostLinear,
@@ -471,6 +474,8 @@ struct Buffers {
     attention: Vec<f32>,
     /// `[K, G]`: each keypoint's expectations of the grids.
     expectations: Vec<f32>,
+    /// Under a moving cut, the frame's grids: the fixed ones with the frame's angle grid.
+    frame_grids: Vec<Vec<f32>>,
     a: Vec<f32>,
     b: Vec<f32>,
     features: Vec<f32>,
@@ -581,6 +586,7 @@ impl HostEncoder {
                 features,
                 sharpness,
                 grids,
+                reference,
                 pairwise,
                 hidden,
                 out,
@@ -593,6 +599,17 @@ impl HostEncoder {
                 let (cells, g) = (side2 * side2, grids.len());
                 buffers.attention.resize(k * cells, 0.0);
                 buffers.expectations.resize(k * g, 0.0);
+                let grids = match reference {
+                    Some(reference) => {
+                        if buffers.frame_grids.is_empty() {
+                            buffers.frame_grids.clone_from(grids);
+                        }
+                        let psi = reference.direction(&buffers.input);
+                        reference.angle_grid(psi, &mut buffers.frame_grids[0]);
+                        &buffers.frame_grids
+                    }
+                    None => grids,
+                };
                 soft_argmax(
                     &buffers.a,
                     sharpness,
@@ -755,17 +772,22 @@ mod tests {
 
     /// The host encoder gives the tensor encoder's `h` for every shipped head: the point mass's
     /// Cartesian keypoints, the reacher's polar keypoints with their pairwise angles over 32x32
-    /// cells and a tanh layer, and the paper's MLP head.
+    /// cells and a tanh layer (also under a moving cut), and the paper's MLP head.
     #[test]
     fn host_encoding_matches_the_tensor_encoder() {
         let device = cpu_device();
-        for (env, preset) in crate::model::SHIPPED_HEADS {
-            let config = TrainConfig::preset(preset, Method::Procl, env);
+        let moving_cut = (crate::envs::EnvKind::Reacher, crate::train::Preset::Procl);
+        let cases = crate::model::SHIPPED_HEADS.into_iter().map(|c| (c, false));
+        for ((env, preset), moving) in cases.chain([(moving_cut, true)]) {
+            let mut config = TrainConfig::preset(preset, Method::Procl, env);
+            config.model.encoder.polar_moving_cut = moving;
             let frames = crate::model::start_frames(env, 6);
             let encoder = config.model.init(3, &device).expect("model").encoder;
             // A centre and a cut away from the defaults and a signed permutation, as a trained
             // encoder has.
-            let encoder = encoder.set_polar_frame([0.1, -0.05], [-0.6, 0.8]);
+            let encoder = encoder
+                .set_polar_frame([0.1, -0.05], [-0.6, 0.8])
+                .place_moving_cut(|| frames.iter().map(|f| &f[..]));
             let mut model = crate::model::ProclModel {
                 encoder,
                 dynamics: config.model.dynamics.init(&device),

@@ -45,6 +45,8 @@ impl ModuleMapper for SeededInit {
             || name == super::LATENT_TRANSFORM
             || name == super::encoder::POLAR_AXIS
             || name == super::encoder::POLAR_CENTRE
+            || name == super::encoder::POLAR_BACKGROUND
+            || name == super::encoder::POLAR_REFERENCE_AXIS
         {
             return param;
         }

@@ -8,6 +8,7 @@ mod dynamics;
 mod encoder;
 mod host_encoder;
 mod init;
+mod polar_reference;
 mod soft_argmax;
 mod trunk;
 mod winograd;

@@ -17,6 +17,7 @@ use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use rayon::prelude::*;
 
 use super::host_encoder::{HostConv, add_bias, gemm_into, gemm_strided};
+use super::polar_reference::PolarReference;
 use super::soft_argmax::soft_argmax;
 use crate::envs::{FRAME_BYTES, FRAME_PX};
 
@@ -36,6 +37,8 @@ pub(crate) struct TrunkSoftArgmax {
     pub log_sharpness: Tensor<1>,
     /// The grids `[cells]` each.
     pub grids: Vec<Vec<f32>>,
+    /// Under a moving cut, what gives each frame its own first (angle) grid.
+    pub reference: Option<PolarReference>,
 }
 
 /// What runs on the host: the layers, then optionally the soft-argmax.
@@ -68,6 +71,7 @@ struct SoftArgmaxTape {
     /// `beta_k`.
     sharpness: Vec<f32>,
     grids: Vec<Vec<f32>>,
+    reference: Option<PolarReference>,
 }
 
 pub(crate) struct TapeLayer {
@@ -90,22 +94,61 @@ struct ChunkTape {
     /// `[frames, K, G]`.
     attention: Vec<f32>,
     expectations: Vec<f32>,
+    /// Under a moving cut, each frame's angle grid `[frames, cells]`.
+    angle_grids: Vec<f32>,
 }
 
 impl SoftArgmaxTape {
+    /// Each frame's angle grid `[frames, cells]` from its network inputs, under a moving cut
+    /// (empty without one).
+    fn angle_grids(&self, input: &[f32], frames: usize) -> Vec<f32> {
+        let Some(reference) = &self.reference else {
+            return Vec::new();
+        };
+        let cells = reference.cells();
+        let mut grids = vec![0.0; frames * cells];
+        for (x, grid) in input
+            .chunks_exact(FRAME_BYTES)
+            .zip(grids.chunks_exact_mut(cells))
+        {
+            reference.angle_grid(reference.direction(x), grid);
+        }
+        grids
+    }
+
+    /// The grids of frame `frame`: the fixed ones, the first replaced by the frame's own
+    /// under a moving cut (`frame_grids` holds them).
+    fn frame_grids<'a>(
+        &'a self,
+        angle_grids: &[f32],
+        frame: usize,
+        frame_grids: &'a mut Vec<Vec<f32>>,
+    ) -> &'a [Vec<f32>] {
+        if angle_grids.is_empty() {
+            return &self.grids;
+        }
+        if frame_grids.is_empty() {
+            frame_grids.clone_from(&self.grids);
+        }
+        let cells = frame_grids[0].len();
+        frame_grids[0].copy_from_slice(&angle_grids[frame * cells..][..cells]);
+        frame_grids
+    }
+
     /// Attention and expectations of `frames` maps `[frames, cells, K]`.
     #[inline(always)]
-    fn forward(&self, maps: &[f32], frames: usize) -> (Vec<f32>, Vec<f32>) {
+    fn forward(&self, maps: &[f32], angle_grids: &[f32], frames: usize) -> (Vec<f32>, Vec<f32>) {
         let k = self.sharpness.len();
         let cells = maps.len() / (frames * k).max(1);
         let g = self.grids.len();
         let mut attention = vec![0.0; frames * k * cells];
         let mut expectations = vec![0.0; frames * k * g];
+        let mut frame_grids = Vec::new();
         for (frame, maps) in maps.chunks_exact(cells * k).enumerate() {
             soft_argmax(
                 maps,
                 &self.sharpness,
-                &self.grids,
+                self.frame_grids(angle_grids, frame, &mut frame_grids),
                 &mut attention[frame * k * cells..][..k * cells],
                 &mut expectations[frame * k * g..][..k * g],
             );
@@ -130,7 +173,9 @@ impl SoftArgmaxTape {
         let (mut offset, mut s, mut grad_beta) = (vec![0.0f32; k], vec![0.0f32; k], vec![0.0; k]);
         // `dE [G, K]`: the frame's expectation gradients, grid by grid.
         let mut de_by_grid = vec![0.0f32; g * k];
+        let mut frame_grids = Vec::new();
         for frame in 0..chunk.frames {
+            let grids = self.frame_grids(&chunk.angle_grids, frame, &mut frame_grids);
             let per_frame = cells * k;
             let maps = &maps[frame * per_frame..][..per_frame];
             let attention = &chunk.attention[frame * per_frame..][..per_frame];
@@ -147,7 +192,7 @@ impl SoftArgmaxTape {
             let rows = attention.chunks_exact(k).zip(maps.chunks_exact(k));
             for (cell, ((a, m), dm)) in rows.zip(grad_maps.chunks_exact_mut(k)).enumerate() {
                 s.iter_mut().zip(&offset).for_each(|(s, &o)| *s = -o);
-                for (grid, de) in self.grids.iter().zip(de_by_grid.chunks_exact(k)) {
+                for (grid, de) in grids.iter().zip(de_by_grid.chunks_exact(k)) {
                     let x = grid[cell];
                     s.iter_mut().zip(de).for_each(|(s, &d)| *s += d * x);
                 }
@@ -491,9 +536,13 @@ fn forward_chunk(
         let y = layer.forward(x, chunk.len(), scratch);
         outputs.push(y);
     }
-    let (attention, expectations) = match (soft_argmax, outputs.last()) {
-        (Some(stage), Some(maps)) => stage.forward(maps, chunk.len()),
-        _ => (Vec::new(), Vec::new()),
+    let (attention, expectations, angle_grids) = match (soft_argmax, outputs.last()) {
+        (Some(stage), Some(maps)) => {
+            let angle_grids = stage.angle_grids(&input, chunk.len());
+            let (attention, expectations) = stage.forward(maps, &angle_grids, chunk.len());
+            (attention, expectations, angle_grids)
+        }
+        _ => (Vec::new(), Vec::new(), Vec::new()),
     };
     ChunkTape {
         frames: chunk.len(),
@@ -501,6 +550,7 @@ fn forward_chunk(
         outputs,
         attention,
         expectations,
+        angle_grids,
     }
 }
 
@@ -583,6 +633,7 @@ impl TrunkTape {
             sharpness: super::to_vec(stage.log_sharpness.clone().exp()),
             log_sharpness: stage.log_sharpness,
             grids: stage.grids,
+            reference: stage.reference,
         });
         let chunks: Vec<ChunkTape> = frames
             .par_chunks(CHUNK_FRAMES)
@@ -741,17 +792,21 @@ mod tests {
 
     /// The host trunk's forward pass and gradients are burn's, to 1e-5 of each gradient's
     /// largest entry, for every shipped head: the point mass's Cartesian keypoints, the
-    /// reacher's polar keypoints with pairwise angles over 32x32 cells, and the paper's MLP
-    /// head. The loss weighs each latent entry differently, and the batch (19 frames) leaves a
-    /// short last chunk.
+    /// reacher's polar keypoints with pairwise angles over 32x32 cells (also under a moving
+    /// cut), and the paper's MLP head. The loss weighs each latent entry differently, and the
+    /// batch (19 frames) leaves a short last chunk.
     #[test]
     fn trunk_gradients_match_burns() {
         let device = cpu_device().autodiff();
-        for (env, preset) in crate::model::SHIPPED_HEADS {
-            let config = TrainConfig::preset(preset, Method::Procl, env);
+        let moving_cut = (crate::envs::EnvKind::Reacher, crate::train::Preset::Procl);
+        let cases = crate::model::SHIPPED_HEADS.into_iter().map(|c| (c, false));
+        for ((env, preset), moving) in cases.chain([(moving_cut, true)]) {
+            let mut config = TrainConfig::preset(preset, Method::Procl, env);
+            config.model.encoder.polar_moving_cut = moving;
             let frames = crate::model::start_frames(env, 19);
             let frames: Vec<&[u8]> = frames.iter().map(|f| &f[..]).collect();
             let encoder = config.model.init(5, &device).expect("model").encoder;
+            let encoder = encoder.place_moving_cut(|| frames.iter().copied());
             let du = encoder.latent_dim();
             let weights: Vec<f32> = (0..frames.len() * du)
                 .map(|i| ((i * 7919) % 13) as f32 / 6.0 - 1.0)

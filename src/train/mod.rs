@@ -88,7 +88,8 @@ impl Objective for ProclObjective<'_> {
     fn prepare(&mut self, mut model: ProclModel) -> ProclModel {
         model.encoder = model
             .encoder
-            .place_polar_frame(|| PixelSpread::of_frames(self.data.every_frame()));
+            .place_polar_frame(|| PixelSpread::of_frames(self.data.every_frame()))
+            .place_moving_cut(|| self.data.every_frame());
         if let Some(target_std) = self.config.model.encoder.init_latent_std
             && target_std > 0.0
         {
