@@ -25,6 +25,11 @@ DT = 0.02
 FADE_RADIUS = 0.05
 
 
+def hub_fade(r2):
+    """How much an angle about the hub counts at squared distance `r2`: 0 at the hub."""
+    return r2 / (r2 + FADE_RADIUS**2)
+
+
 def pixel_grid(rows, cols):
     xs = (2.0 * torch.arange(cols, dtype=torch.float32) + 1.0) / cols - 1.0
     ys = (2.0 * torch.arange(rows, dtype=torch.float32) + 1.0) / rows - 1.0
@@ -53,27 +58,24 @@ class Encoder(nn.Module):
         self.register_buffer("grid_y", gy)
         self.register_buffer("transform", torch.eye(du))
         r2 = gx**2 + gy**2
-        angle = torch.atan2(gy, gx) * r2 / (r2 + FADE_RADIUS**2)
-        if falloff > 0:
-            # The outer cells' angles count less (model.encoder.polar_angle_falloff).
-            angle = angle / (1 + r2 / falloff**2)
-        self.register_buffer("angle", angle)
+        cell_angle, cell_fade = torch.atan2(gy, gx), hub_fade(r2)
+        # The outer cells' angles count less (model.encoder.polar_angle_falloff).
+        cell_weight = 1 / (1 + r2 / falloff**2) if falloff > 0 else torch.ones_like(r2)
+        self.register_buffer("angle", cell_angle * cell_fade * cell_weight)
         self.register_buffer("radius", r2.sqrt())
         self.moving_cut = moving_cut
         if moving_cut:
             # Each frame's cut opposite its direction from the still background
-            # (model.encoder.polar_moving_cut): the cells' raw angles, their fades at the hub
-            # and falloff weights, and each pixel's faded unit direction.
-            self.register_buffer("cell_angle", torch.atan2(gy, gx))
-            self.register_buffer("cell_fade", r2 / (r2 + FADE_RADIUS**2))
-            weight = 1 / (1 + r2 / falloff**2) if falloff > 0 else torch.ones_like(r2)
-            self.register_buffer("cell_weight", weight)
+            # (model.encoder.polar_moving_cut): the cells' raw angles, fades and weights, and
+            # each pixel's faded unit direction. The random frames have no still background,
+            # so a blank one and the axis at 0 stand in: the cost is the same.
+            self.register_buffer("cell_angle", cell_angle)
+            self.register_buffer("cell_fade", cell_fade)
+            self.register_buffer("cell_weight", cell_weight)
             px, py = pixel_grid(64, 64)
-            pr2 = px**2 + py**2
-            pfade = pr2 / (pr2 + FADE_RADIUS**2)
-            pangle = torch.atan2(py, px)
-            self.register_buffer("pixel_cos", (pfade * pangle.cos()).reshape(1, 64, 64))
-            self.register_buffer("pixel_sin", (pfade * pangle.sin()).reshape(1, 64, 64))
+            pixel_fade, pixel_angle = hub_fade(px**2 + py**2), torch.atan2(py, px)
+            self.register_buffer("pixel_cos", (pixel_fade * pixel_angle.cos()).reshape(1, 64, 64))
+            self.register_buffer("pixel_sin", (pixel_fade * pixel_angle.sin()).reshape(1, 64, 64))
             self.register_buffer("background", torch.zeros(1, 3, 64, 64))
             self.axis = 0.0
         pairs = torch.triu_indices(keypoints, keypoints, 1)
@@ -103,13 +105,12 @@ class Encoder(nn.Module):
             cross = x_k * y_j - y_k * x_j
             dot = x_k * x_j + y_k * y_j
             r2 = x_k**2 + y_k**2
-            fade = r2 / (r2 + FADE_RADIUS**2)
+            fade = hub_fade(r2)
             angle = torch.atan2(cross, dot + 1e-12) * (fade * fade.reshape(n, 1, k))
             feats = torch.cat([feats, angle.reshape(n, k * k)[:, self.upper]], dim=1)
         if self.hidden is not None:
             feats = torch.tanh(self.hidden(feats))
         return self.out(feats) @ self.transform.T
-
 
     def frame_angles(self, frames):
         """Each frame's cells' angles, `[n, 1, cells]`, measured from its own direction."""
