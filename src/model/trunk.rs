@@ -94,26 +94,31 @@ struct ChunkTape {
     /// `[frames, K, G]`.
     attention: Vec<f32>,
     expectations: Vec<f32>,
-    /// Under a moving cut, each frame's angle grid `[frames, cells]`.
+    /// Under a moving cut, each frame's angle grid `[frames, cells]` and its direction `psi`
+    /// `[frames]`.
     angle_grids: Vec<f32>,
+    directions: Vec<f32>,
 }
 
 impl SoftArgmaxTape {
-    /// Each frame's angle grid `[frames, cells]` from its network inputs, under a moving cut
-    /// (empty without one).
-    fn angle_grids(&self, input: &[f32], frames: usize) -> Vec<f32> {
+    /// Each frame's angle grid `[frames, cells]` and direction `psi` `[frames]` from its
+    /// network inputs, under a moving cut (empty without one).
+    fn angle_grids(&self, input: &[f32], frames: usize) -> (Vec<f32>, Vec<f32>) {
         let Some(reference) = &self.reference else {
-            return Vec::new();
+            return (Vec::new(), Vec::new());
         };
         let cells = reference.cells();
         let mut grids = vec![0.0; frames * cells];
+        let mut directions = Vec::with_capacity(frames);
         for (x, grid) in input
             .chunks_exact(FRAME_BYTES)
             .zip(grids.chunks_exact_mut(cells))
         {
-            reference.angle_grid(reference.direction(x), grid);
+            let psi = reference.direction(x);
+            reference.angle_grid(psi, grid);
+            directions.push(psi);
         }
-        grids
+        (grids, directions)
     }
 
     /// The grids of frame `frame`: the fixed ones, the first replaced by the frame's own
@@ -536,13 +541,13 @@ fn forward_chunk(
         let y = layer.forward(x, chunk.len(), scratch);
         outputs.push(y);
     }
-    let (attention, expectations, angle_grids) = match (soft_argmax, outputs.last()) {
+    let (attention, expectations, (angle_grids, directions)) = match (soft_argmax, outputs.last()) {
         (Some(stage), Some(maps)) => {
-            let angle_grids = stage.angle_grids(&input, chunk.len());
-            let (attention, expectations) = stage.forward(maps, &angle_grids, chunk.len());
-            (attention, expectations, angle_grids)
+            let moving_cut = stage.angle_grids(&input, chunk.len());
+            let (attention, expectations) = stage.forward(maps, &moving_cut.0, chunk.len());
+            (attention, expectations, moving_cut)
         }
-        _ => (Vec::new(), Vec::new(), Vec::new()),
+        _ => (Vec::new(), Vec::new(), (Vec::new(), Vec::new())),
     };
     ChunkTape {
         frames: chunk.len(),
@@ -551,6 +556,7 @@ fn forward_chunk(
         attention,
         expectations,
         angle_grids,
+        directions,
     }
 }
 
@@ -694,6 +700,17 @@ impl TrunkTape {
         self.output.clone()
     }
 
+    /// Under a moving cut, each frame's direction `psi` `[n, 1]` (`None` without one).
+    pub fn directions(&self, device: &Device) -> Option<Tensor<2>> {
+        let directions: Vec<f32> = self
+            .chunks
+            .iter()
+            .flat_map(|chunk| chunk.directions.iter().copied())
+            .collect();
+        let n = directions.len();
+        (n > 0).then(|| Tensor::from_data(TensorData::new(directions, [n, 1]), device))
+    }
+
     /// Carries the gradient `backward` left at [`Self::output`] back through the trunk and
     /// writes its parameters' gradients into `grads` (nothing when the loss did not depend on
     /// the output).
@@ -803,6 +820,8 @@ mod tests {
         for ((env, preset), moving) in cases.chain([(moving_cut, true)]) {
             let mut config = TrainConfig::preset(preset, Method::Procl, env);
             config.model.encoder.polar_moving_cut = moving;
+            // The presets start the pairwise angles' weights at 0; here they reach `h`.
+            config.model.encoder.pairwise_init_scale = 1.0;
             let frames = crate::model::start_frames(env, 19);
             let frames: Vec<&[u8]> = frames.iter().map(|f| &f[..]).collect();
             let encoder = config.model.init(5, &device).expect("model").encoder;
