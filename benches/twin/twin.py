@@ -25,16 +25,6 @@ DT = 0.02
 FADE_RADIUS = 0.05
 
 
-def wrap(a):
-    """`a` in [-pi, pi)."""
-    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
-
-
-def before_cut(offset):
-    """1, falling to 0 over the last 45 degrees before the cut opposite the frame's direction."""
-    return ((math.pi - offset.abs()) / (math.pi / 4)).clamp(max=1.0)
-
-
 def hub_fade(r2):
     """How much an angle about the hub counts at squared distance `r2`: 0 at the hub."""
     return r2 / (r2 + FADE_RADIUS**2)
@@ -102,10 +92,8 @@ class Encoder(nn.Module):
         def expected(grid):
             return (attention * grid).sum(dim=2, keepdim=True)
 
-        psi = None
         if self.polar and self.moving_cut:
-            angles, psi = self.frame_angles(frames)
-            coords = [expected(angles), expected(self.radius)]
+            coords = [expected(self.frame_angles(frames)), expected(self.radius)]
         elif self.polar:
             coords = [expected(self.angle), expected(self.radius)]
         else:
@@ -113,33 +101,30 @@ class Encoder(nn.Module):
         feats = torch.cat(coords, dim=1).reshape(n, -1)
         if self.pairwise:
             x_k, y_k = expected(self.grid_x), expected(self.grid_y)
-            fade = hub_fade(x_k**2 + y_k**2)
-            if psi is None:
-                x_j, y_j = x_k.reshape(n, 1, k), y_k.reshape(n, 1, k)
-                cross = x_k * y_j - y_k * x_j
-                dot = x_k * x_j + y_k * y_j
-                angle = torch.atan2(cross, dot + 1e-12) * (fade * fade.reshape(n, 1, k))
-            else:
-                # Under the moving cut, the differences of the keypoints' offsets from psi,
-                # each faded before the cut as the cells' angles are.
-                offset = wrap(torch.atan2(y_k, x_k + 1e-12) - psi.reshape(-1, 1, 1))
-                faded = offset * before_cut(offset) * fade
-                angle = faded.reshape(n, 1, k) - faded
+            x_j, y_j = x_k.reshape(n, 1, k), y_k.reshape(n, 1, k)
+            cross = x_k * y_j - y_k * x_j
+            dot = x_k * x_j + y_k * y_j
+            r2 = x_k**2 + y_k**2
+            fade = hub_fade(r2)
+            angle = torch.atan2(cross, dot + 1e-12) * (fade * fade.reshape(n, 1, k))
             feats = torch.cat([feats, angle.reshape(n, k * k)[:, self.upper]], dim=1)
         if self.hidden is not None:
             feats = torch.tanh(self.hidden(feats))
         return self.out(feats) @ self.transform.T
 
     def frame_angles(self, frames):
-        """Each frame's cells' angles, `[n, 1, cells]`, measured from its own direction, and
-        that direction `psi`, `[n]`."""
+        """Each frame's cells' angles, `[n, 1, cells]`, measured from its own direction."""
         with torch.no_grad():
             d = (frames - self.background).abs().sum(1)
             psi = torch.atan2((d * self.pixel_sin).sum((1, 2)), (d * self.pixel_cos).sum((1, 2)))
+
+            def wrap(a):
+                return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+
             big_psi = wrap(psi - self.axis).reshape(-1, 1, 1)
             offset = wrap(self.cell_angle - psi.reshape(-1, 1, 1))
-            grid = (big_psi + self.cell_fade * offset * before_cut(offset)) * self.cell_weight
-            return grid, psi
+            before_cut = ((math.pi - offset.abs()) / (math.pi / 4)).clamp(max=1.0)
+            return (big_psi + self.cell_fade * offset * before_cut) * self.cell_weight
 
 
 class Dynamics(nn.Module):

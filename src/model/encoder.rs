@@ -8,7 +8,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::POLAR_FADE_RADIUS;
 use super::host_encoder::{HostConv, HostEncoder, HostHead, HostLinear};
-use super::polar_reference::{CUT_FADE, PolarReference};
+use super::polar_reference::PolarReference;
 use super::trunk::{Trunk, TrunkLayer, TrunkOutput, TrunkSoftArgmax, TrunkTape};
 use crate::data::PixelSpread;
 use crate::envs::{FRAME_BYTES, FRAME_PX};
@@ -94,8 +94,7 @@ pub struct EncoderConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub polar_angle_falloff: Option<f64>,
     /// Polar heads: each frame's cut moves to the side opposite the direction in which the
-    /// frame differs most from the still background, so no part of the arm crosses it, and
-    /// the angles between keypoints are measured from that direction too (see
+    /// frame differs most from the still background, so no part of the arm crosses it (see
     /// `polar_reference.rs`). Off: one cut for every frame, where the frames change least.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub polar_moving_cut: bool,
@@ -509,14 +508,14 @@ impl Encoder {
             .keypoints
             .as_ref()
             .and_then(|head| head.polar_reference(self.keypoint_side()));
-        let moving_cut = reference.map(|reference| reference_grids(&reference, &frames));
+        let angle_grids = reference.map(|reference| reference_grids(&reference, &frames));
         let x = relu(self.conv1.forward(frames)); // [n, c1, 32, 32]
         let x = relu(self.conv2.forward(x)); // [n, c2, 16, 16], or 32x32 at stride 1
         let x = match &self.keypoints {
             Some(head) => head.features.forward(x), // [n, K, 16, 16] (32x32 at stride 1)
             None => x,
         };
-        self.head_from_trunk(x, moving_cut)
+        self.head_from_trunk(x, angle_grids)
     }
 
     /// Side of the keypoint maps: 64 pixels through conv1 and conv2.
@@ -587,19 +586,15 @@ impl Encoder {
                 .keypoints
                 .as_ref()
                 .expect("a soft-argmax trunk belongs to a keypoint head")
-                .latent_from_expectations(e, tape.directions(device)),
+                .latent_from_expectations(e),
         };
         (self.orient(raw), Some(tape))
     }
 
     /// The head's output before `Q`, from the trunk's output: conv2's (MLP head) or the
-    /// keypoint feature maps. Under a moving cut, `moving_cut` holds each frame's angle grid
-    /// (`[n, 1, cells]`, replacing the fixed one) and its direction `psi` (`[n, 1]`).
-    fn head_from_trunk(
-        &self,
-        x: Tensor<4>,
-        moving_cut: Option<(Tensor<3>, Tensor<2>)>,
-    ) -> Tensor<2> {
+    /// keypoint feature maps; `angle_grids` (`[n, 1, cells]`) replace the fixed angle grid
+    /// with each frame's own under a moving cut.
+    fn head_from_trunk(&self, x: Tensor<4>, angle_grids: Option<Tensor<3>>) -> Tensor<2> {
         if let Some(head) = &self.mlp {
             let x = relu(head.conv3.forward(x)); // [n, 32, 8, 8]
             let n = x.dims()[0];
@@ -615,15 +610,14 @@ impl Encoder {
         let logits = x.reshape([n, k, rows * cols]) * sharpness; // [n, K, cells]
         let attention = softmax(logits, 2); // [n, K, cells]
         let mut grids = head.expectation_grids(rows, cols, &attention.device());
-        let directions = moving_cut.map(|(angle_grids, directions)| {
+        if let Some(angle_grids) = angle_grids {
             grids[0] = angle_grids;
-            directions
-        });
+        }
         let expectations = grids
             .into_iter()
             .map(|grid| (attention.clone() * grid).sum_dim(2)) // [n, K, 1]
             .collect();
-        head.latent_from_expectations(Tensor::cat(expectations, 2), directions)
+        head.latent_from_expectations(Tensor::cat(expectations, 2))
     }
 }
 
@@ -746,13 +740,8 @@ impl KeypointHead {
         grids
     }
 
-    /// The expectations `[n, K, G]` of [`Self::expectation_grids`] -> `h`; `directions`
-    /// (`[n, 1]`): each frame's `psi` under a moving cut.
-    fn latent_from_expectations(
-        &self,
-        expectations: Tensor<3>,
-        directions: Option<Tensor<2>>,
-    ) -> Tensor<2> {
+    /// The expectations `[n, K, G]` of [`Self::expectation_grids`] -> `h`.
+    fn latent_from_expectations(&self, expectations: Tensor<3>) -> Tensor<2> {
         let [n, k, _] = expectations.dims();
         let grid = |g: usize| expectations.clone().narrow(2, g, 1); // [n, K, 1]
         // Each keypoint is the attention's expected cell coordinate: Cartesian, or the polar
@@ -762,8 +751,7 @@ impl KeypointHead {
         let features = if self.pairwise_angles {
             // The angles between polar keypoints come from their expected (x, y).
             // [n, 2K + K (K - 1) / 2]
-            let pairs = pairwise_angles(grid(2), grid(3), directions);
-            Tensor::cat(vec![keypoints, pairs], 1)
+            Tensor::cat(vec![keypoints, pairwise_angles(grid(2), grid(3))], 1)
         } else {
             keypoints
         };
@@ -779,16 +767,14 @@ impl KeypointHead {
     }
 }
 
-/// Each frame's angle grid under `reference` and its direction `psi`: frames
-/// `[n, 3, 64, 64]` -> `[n, 1, cells]` and `[n, 1]`.
-fn reference_grids(reference: &PolarReference, frames: &Tensor<4>) -> (Tensor<3>, Tensor<2>) {
+/// Each frame's angle grid under `reference`: frames `[n, 3, 64, 64]` -> `[n, 1, cells]`.
+fn reference_grids(reference: &PolarReference, frames: &Tensor<4>) -> Tensor<3> {
     let n = frames.dims()[0];
     let planar = super::to_vec(frames.clone());
     let plane = FRAME_PX * FRAME_PX;
     let cells = reference.cells();
     let mut input = vec![0.0; FRAME_BYTES];
     let mut grids = vec![0.0; n * cells];
-    let mut directions = Vec::with_capacity(n);
     for (frame, grid) in planar
         .chunks_exact(FRAME_BYTES)
         .zip(grids.chunks_exact_mut(cells))
@@ -798,15 +784,9 @@ fn reference_grids(reference: &PolarReference, frames: &Tensor<4>) -> (Tensor<3>
                 *v = frame[c * plane + p];
             }
         }
-        let psi = reference.direction(&input);
-        reference.angle_grid(psi, grid);
-        directions.push(psi);
+        reference.angle_grid(reference.direction(&input), grid);
     }
-    let device = frames.device();
-    (
-        Tensor::from_data(TensorData::new(grids, [n, 1, cells]), &device),
-        Tensor::from_data(TensorData::new(directions, [n, 1]), &device),
-    )
+    Tensor::from_data(TensorData::new(grids, [n, 1, cells]), &frames.device())
 }
 
 /// Rewrites `layer` so each output `y_j` becomes `(y_j - mean_j) scale_j` (`mean`, `scale`:
@@ -851,44 +831,23 @@ fn polar_grid(
 /// Expected keypoint positions `x, y` (`[n, K, 1]` each, about the polar centre) -> the angle
 /// from keypoint `i` to keypoint `j` about the centre for every pair `i < j` (`[n, K (K - 1) / 2]`,
 /// in `(-pi, pi]`), faded to 0 as either keypoint nears the centre (see [`polar_grid`]).
-/// Under a moving cut (`directions`: each frame's `psi`, `[n, 1]`), the difference of the two
-/// keypoints' offsets from `psi`, each faded before the cut opposite `psi` as the cells'
-/// angles are ([`super::polar_reference`]): continuous where the plain angle jumps, at the
-/// two keypoints passing opposite each other.
-fn pairwise_angles(x: Tensor<3>, y: Tensor<3>, directions: Option<Tensor<2>>) -> Tensor<2> {
+fn pairwise_angles(x: Tensor<3>, y: Tensor<3>) -> Tensor<2> {
     let [n, k, _] = x.dims();
-    let pairs_of = |angle: Tensor<3>| {
-        let upper: Vec<i64> = (0..k)
-            .flat_map(|i| (i + 1..k).map(move |j| (i * k + j) as i64))
-            .collect();
-        let pairs = upper.len();
-        let index = Tensor::<1, Int>::from_data(TensorData::new(upper, [pairs]), &angle.device());
-        angle.reshape([n, k * k]).select(1, index)
-    };
-    let fade_of = |r_squared: Tensor<3>| {
-        r_squared.clone() / (r_squared + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS)
-    };
-    if let Some(psi) = directions {
-        let psi = psi.reshape([n, 1, 1]);
-        let (cos, sin) = (psi.clone().cos(), psi.sin());
-        let along = x.clone() * cos.clone() + y.clone() * sin.clone();
-        let across = y.clone() * cos - x.clone() * sin;
-        let fade = fade_of(x.powi_scalar(2) + y.powi_scalar(2)); // [n, K, 1]
-        // atan2's gradient is 0/0 at the origin; the offset keeps it finite there, where the
-        // fade is 0 anyway.
-        let offset = across.atan2(along + 1e-12);
-        let before_cut =
-            ((offset.clone().abs().neg() + std::f32::consts::PI) / CUT_FADE).clamp_max(1.0);
-        let faded = offset * before_cut * fade; // [n, K, 1]
-        return pairs_of(faded.clone().reshape([n, 1, k]) - faded);
-    }
     let (x_j, y_j) = (x.clone().reshape([n, 1, k]), y.clone().reshape([n, 1, k]));
     let cross = x.clone() * y_j.clone() - y.clone() * x_j.clone(); // [n, K, K]
     let dot = x.clone() * x_j.clone() + y.clone() * y_j.clone();
-    let fade = fade_of(x.powi_scalar(2) + y.powi_scalar(2)); // [n, K, 1]
+    let r_squared = x.powi_scalar(2) + y.powi_scalar(2); // [n, K, 1]
+    let fade = r_squared.clone() / (r_squared + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
     let fade_pair = fade.clone() * fade.reshape([n, 1, k]);
-    // As above: finite at the origin.
-    pairs_of(cross.atan2(dot + 1e-12) * fade_pair) // [n, K, K] -> pairs
+    // atan2's gradient is 0/0 at the origin; the offset keeps it finite there, where the fade
+    // is 0 anyway.
+    let angle = cross.atan2(dot + 1e-12) * fade_pair; // [n, K, K]
+    let upper: Vec<i64> = (0..k)
+        .flat_map(|i| (i + 1..k).map(move |j| (i * k + j) as i64))
+        .collect();
+    let pairs = upper.len();
+    let index = Tensor::<1, Int>::from_data(TensorData::new(upper, [pairs]), &angle.device());
+    angle.reshape([n, k * k]).select(1, index)
 }
 
 /// Column and row coordinates of each cell, in [-1, 1], shaped `[1, 1, rows * cols]`.
@@ -1108,7 +1067,7 @@ mod tests {
         // Keypoints at radius 1 along +x, +y and -x, and one at the centre.
         let x = t3(vec![1.0, 0.0, -1.0, 0.0]).require_grad();
         let y = t3(vec![0.0, 1.0, 0.0, 0.0]).require_grad();
-        let angles = pairwise_angles(x.clone(), y.clone(), None);
+        let angles = pairwise_angles(x.clone(), y.clone());
         assert_eq!(angles.dims(), [1, 6]);
         let fade = 1.0 / (1.0 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
         let pi = std::f32::consts::PI;
@@ -1125,7 +1084,7 @@ mod tests {
         let (xs, ys) = ([1.0f32, 0.0, -1.0, 0.0], [0.0f32, 1.0, 0.0, 0.0]);
         let xr = t3(xs.iter().zip(ys).map(|(x, y)| c * x - s * y).collect());
         let yr = t3(xs.iter().zip(ys).map(|(x, y)| s * x + c * y).collect());
-        let turned = to_vec(pairwise_angles(xr, yr, None));
+        let turned = to_vec(pairwise_angles(xr, yr));
         // Pair (0,2) sits on the jump, where rounding picks either side.
         for (i, (g, w)) in turned.iter().zip(&got).enumerate().filter(|(i, _)| *i != 1) {
             assert!((g - w).abs() < 1e-4, "pair {i}: {turned:?}");
@@ -1138,69 +1097,6 @@ mod tests {
         );
         assert!(gx.iter().chain(&gy).all(|g| g.is_finite()), "{gx:?} {gy:?}");
         assert_eq!((gx[3], gy[3]), (0.0, 0.0));
-    }
-
-    #[test]
-    fn under_a_moving_cut_pairwise_angles_stay_continuous_where_two_keypoints_pass_opposite() {
-        use std::f32::consts::PI;
-        let device = cpu_device().autodiff();
-        let fade = 1.0 / (1.0 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS);
-        // Keypoint 0 on the arm at `psi` + 10 degrees, keypoint 1 on the still background
-        // opposite it, just either side of the plain angle's jump; keypoint 2 at the centre.
-        let psi = 30f32.to_radians();
-        let pairs_for = |second: f32| {
-            let first = psi + 10f32.to_radians();
-            let x = Tensor::<3>::from_data(
-                TensorData::new(vec![first.cos(), second.cos(), 0.0], [1, 3, 1]),
-                &device,
-            )
-            .require_grad();
-            let y = Tensor::<3>::from_data(
-                TensorData::new(vec![first.sin(), second.sin(), 0.0], [1, 3, 1]),
-                &device,
-            )
-            .require_grad();
-            let direction = Tensor::<2>::from_data(TensorData::new(vec![psi], [1, 1]), &device);
-            let plain = to_vec(pairwise_angles(x.clone(), y.clone(), None));
-            let moving = pairwise_angles(x.clone(), y.clone(), Some(direction));
-            (plain, moving, x, y)
-        };
-        let opposite = psi + 10f32.to_radians() + PI;
-        let (plain_before, before, ..) = pairs_for(opposite - 1e-3);
-        let (plain_after, after, ..) = pairs_for(opposite + 1e-3);
-        // The plain angle from keypoint 0 to keypoint 1 jumps by 2 pi; the moving one does not.
-        assert!(
-            (plain_before[0] - plain_after[0]).abs() > 6.0,
-            "{plain_before:?}"
-        );
-        let (before, after) = (to_vec(before), to_vec(after));
-        assert!((before[0] - after[0]).abs() < 1e-2, "{before:?} {after:?}");
-        // By hand: keypoint 0's offset from psi is 10 degrees, well inside the fade; keypoint
-        // 1's is -(170 degrees - 1e-3), faded to (10 degrees + 1e-3) / 45 degrees of itself;
-        // the centre's is 0.
-        let first = 10f32.to_radians() * fade;
-        let second = (1e-3 - 170f32.to_radians()) * (10f32.to_radians() + 1e-3) / (PI / 4.0);
-        let second = second * fade;
-        let want = [second - first, -first, -second];
-        for (g, w) in after.iter().zip(want) {
-            assert!((g - w).abs() < 1e-3, "{after:?} vs {want:?}");
-        }
-        // Away from the cut it is the angle between the two keypoints, each faded at the centre.
-        let (_, moving, ..) = pairs_for(psi + 60f32.to_radians());
-        let moving = to_vec(moving);
-        assert!(
-            (moving[0] - 50f32.to_radians() * fade).abs() < 1e-4,
-            "{moving:?}"
-        );
-        // The keypoint at the centre gets a finite (zero) gradient.
-        let (_, moving, x, y) = pairs_for(opposite + 1e-3);
-        let grads = moving.sum().backward();
-        let (gx, gy) = (
-            to_vec(x.grad(&grads).unwrap()),
-            to_vec(y.grad(&grads).unwrap()),
-        );
-        assert!(gx.iter().chain(&gy).all(|g| g.is_finite()), "{gx:?} {gy:?}");
-        assert_eq!((gx[2], gy[2]), (0.0, 0.0));
     }
 
     #[test]

@@ -9,7 +9,7 @@ use gemm::Parallelism;
 
 use super::POLAR_FADE_RADIUS;
 use super::direct_conv::{self, DirectConv};
-use super::polar_reference::{PolarReference, offset_before_cut};
+use super::polar_reference::PolarReference;
 use super::soft_argmax::soft_argmax;
 use super::winograd::Winograd3x3;
 use crate::envs::FRAME_PX;
@@ -476,8 +476,6 @@ struct Buffers {
     expectations: Vec<f32>,
     /// Under a moving cut, the frame's grids: the fixed ones with the frame's angle grid.
     frame_grids: Vec<Vec<f32>>,
-    /// Under a moving cut with pairwise angles, each keypoint's faded offset from `psi`.
-    key_offsets: Vec<f32>,
     a: Vec<f32>,
     b: Vec<f32>,
     features: Vec<f32>,
@@ -601,16 +599,16 @@ impl HostEncoder {
                 let (cells, g) = (side2 * side2, grids.len());
                 buffers.attention.resize(k * cells, 0.0);
                 buffers.expectations.resize(k * g, 0.0);
-                let (grids, direction) = match reference {
+                let grids = match reference {
                     Some(reference) => {
                         if buffers.frame_grids.is_empty() {
                             buffers.frame_grids.clone_from(grids);
                         }
                         let psi = reference.direction(&buffers.input);
                         reference.angle_grid(psi, &mut buffers.frame_grids[0]);
-                        (&buffers.frame_grids, Some(psi))
+                        &buffers.frame_grids
                     }
-                    None => (grids, None),
+                    None => grids,
                 };
                 soft_argmax(
                     &buffers.a,
@@ -629,29 +627,11 @@ impl HostEncoder {
                         let r2 = e(key, 2).powi(2) + e(key, 3).powi(2);
                         r2 / (r2 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS)
                     };
-                    match direction {
-                        // As `encoder::pairwise_angles`: offsets from `psi`, faded before its cut.
-                        Some(psi) => {
-                            let offsets = &mut buffers.key_offsets;
-                            offsets.clear();
-                            offsets.extend((0..k).map(|key| {
-                                let angle = e(key, 3).atan2(e(key, 2));
-                                fade(key) * offset_before_cut(angle, psi)
-                            }));
-                            for i in 0..k {
-                                for j in i + 1..k {
-                                    feats.push(offsets[j] - offsets[i]);
-                                }
-                            }
-                        }
-                        None => {
-                            for i in 0..k {
-                                for j in i + 1..k {
-                                    let cross = e(i, 2) * e(j, 3) - e(i, 3) * e(j, 2);
-                                    let dot = e(i, 2) * e(j, 2) + e(i, 3) * e(j, 3);
-                                    feats.push(cross.atan2(dot + 1e-12) * fade(i) * fade(j));
-                                }
-                            }
+                    for i in 0..k {
+                        for j in i + 1..k {
+                            let cross = e(i, 2) * e(j, 3) - e(i, 3) * e(j, 2);
+                            let dot = e(i, 2) * e(j, 2) + e(i, 3) * e(j, 3);
+                            feats.push(cross.atan2(dot + 1e-12) * fade(i) * fade(j));
                         }
                     }
                 }

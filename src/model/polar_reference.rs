@@ -8,10 +8,6 @@
 //! is cut where the dataset's directions never point. A cell of still background opposite the
 //! arm would jump by `2 pi` as the cut sweeps over it, so its angle from `psi` fades to 0
 //! over the last [`CUT_FADE`] before the cut: each cell's value is continuous in `psi`.
-//! The angles between keypoints are measured the same way, as differences of their faded
-//! offsets from `psi`: a plain angle between two keypoints jumps by `2 pi` where they pass
-//! opposite each other about the hub, which an arm's keypoint and one on the still background
-//! do once a turn.
 
 use super::{POLAR_FADE_RADIUS, pixel_input};
 use crate::envs::{FRAME_BYTES, FRAME_PX};
@@ -19,15 +15,7 @@ use crate::envs::{FRAME_BYTES, FRAME_PX};
 /// The angle from `psi` over which a cell's offset fades to 0 before the cut opposite `psi`.
 /// An arm's cells lie within about 120 degrees of its direction (a tip folded back by 167
 /// degrees, the direction pulled 30 degrees towards it), short of the fade.
-pub(crate) const CUT_FADE: f32 = std::f32::consts::FRAC_PI_4;
-
-/// `wrap(angle - psi)`, faded to 0 over the last [`CUT_FADE`] before the cut opposite `psi`
-/// so that it is continuous in both.
-pub(crate) fn offset_before_cut(angle: f32, psi: f32) -> f32 {
-    use std::f32::consts::PI;
-    let offset = wrap(angle - psi);
-    offset * ((PI - offset.abs()) / CUT_FADE).min(1.0)
-}
+const CUT_FADE: f32 = std::f32::consts::FRAC_PI_4;
 
 /// Bins of the dataset's directions when placing their cut: 2.5 degrees each.
 const DIRECTION_BINS: usize = 144;
@@ -149,9 +137,12 @@ impl PolarReference {
     /// The cells' angles for a frame of direction `psi` (see the module's doc), each weighed
     /// by its falloff, into `out` (`[cells]`).
     pub(crate) fn angle_grid(&self, psi: f32, out: &mut [f32]) {
+        use std::f32::consts::PI;
         let big_psi = wrap(psi - self.axis);
         for (o, cell) in out.iter_mut().zip(&self.cells) {
-            *o = (big_psi + cell.fade * offset_before_cut(cell.angle, psi)) * cell.weight;
+            let offset = wrap(cell.angle - psi);
+            let before_cut = ((PI - offset.abs()) / CUT_FADE).min(1.0);
+            *o = (big_psi + cell.fade * offset * before_cut) * cell.weight;
         }
     }
 

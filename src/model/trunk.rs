@@ -94,31 +94,26 @@ struct ChunkTape {
     /// `[frames, K, G]`.
     attention: Vec<f32>,
     expectations: Vec<f32>,
-    /// Under a moving cut, each frame's angle grid `[frames, cells]` and its direction `psi`
-    /// `[frames]`.
+    /// Under a moving cut, each frame's angle grid `[frames, cells]`.
     angle_grids: Vec<f32>,
-    directions: Vec<f32>,
 }
 
 impl SoftArgmaxTape {
-    /// Each frame's angle grid `[frames, cells]` and direction `psi` `[frames]` from its
-    /// network inputs, under a moving cut (empty without one).
-    fn angle_grids(&self, input: &[f32], frames: usize) -> (Vec<f32>, Vec<f32>) {
+    /// Each frame's angle grid `[frames, cells]` from its network inputs, under a moving cut
+    /// (empty without one).
+    fn angle_grids(&self, input: &[f32], frames: usize) -> Vec<f32> {
         let Some(reference) = &self.reference else {
-            return (Vec::new(), Vec::new());
+            return Vec::new();
         };
         let cells = reference.cells();
         let mut grids = vec![0.0; frames * cells];
-        let mut directions = Vec::with_capacity(frames);
         for (x, grid) in input
             .chunks_exact(FRAME_BYTES)
             .zip(grids.chunks_exact_mut(cells))
         {
-            let psi = reference.direction(x);
-            reference.angle_grid(psi, grid);
-            directions.push(psi);
+            reference.angle_grid(reference.direction(x), grid);
         }
-        (grids, directions)
+        grids
     }
 
     /// The grids of frame `frame`: the fixed ones, the first replaced by the frame's own
@@ -541,13 +536,13 @@ fn forward_chunk(
         let y = layer.forward(x, chunk.len(), scratch);
         outputs.push(y);
     }
-    let (attention, expectations, (angle_grids, directions)) = match (soft_argmax, outputs.last()) {
+    let (attention, expectations, angle_grids) = match (soft_argmax, outputs.last()) {
         (Some(stage), Some(maps)) => {
-            let moving_cut = stage.angle_grids(&input, chunk.len());
-            let (attention, expectations) = stage.forward(maps, &moving_cut.0, chunk.len());
-            (attention, expectations, moving_cut)
+            let angle_grids = stage.angle_grids(&input, chunk.len());
+            let (attention, expectations) = stage.forward(maps, &angle_grids, chunk.len());
+            (attention, expectations, angle_grids)
         }
-        _ => (Vec::new(), Vec::new(), (Vec::new(), Vec::new())),
+        _ => (Vec::new(), Vec::new(), Vec::new()),
     };
     ChunkTape {
         frames: chunk.len(),
@@ -556,7 +551,6 @@ fn forward_chunk(
         attention,
         expectations,
         angle_grids,
-        directions,
     }
 }
 
@@ -698,17 +692,6 @@ impl TrunkTape {
     /// The trunk's output, a graph leaf.
     pub fn output(&self) -> TrunkOutput {
         self.output.clone()
-    }
-
-    /// Under a moving cut, each frame's direction `psi` `[n, 1]` (`None` without one).
-    pub fn directions(&self, device: &Device) -> Option<Tensor<2>> {
-        let directions: Vec<f32> = self
-            .chunks
-            .iter()
-            .flat_map(|chunk| chunk.directions.iter().copied())
-            .collect();
-        let n = directions.len();
-        (n > 0).then(|| Tensor::from_data(TensorData::new(directions, [n, 1]), device))
     }
 
     /// Carries the gradient `backward` left at [`Self::output`] back through the trunk and

@@ -470,8 +470,9 @@ impl TrainConfig {
         config.control_dt_s = Some(control_dt_s);
         config.model.encoder.latent_dim = action_dim;
         config.model.dynamics.latent_dim = action_dim;
-        // On a reacher variant procl was not tuned on, training with each frame's own cut
-        // erased the wrist (docs/research/reacher.md, K), so custom data keeps the one cut.
+        // On arms procl was not tuned on, training with each frame's own cut diverged on
+        // half the runs measured (docs/research/reacher.md, K), so custom data keeps the
+        // one cut.
         config.model.encoder.polar_moving_cut = false;
         if let Some(nvae) = &mut config.nvae {
             nvae.latent_dim = action_dim;
