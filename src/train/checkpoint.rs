@@ -157,7 +157,12 @@ impl ModuleMapper for Restore<'_> {
             found => {
                 let what = match found {
                     Some((shape, _)) => {
-                        format!("`{key}` has shape {shape:?}, the model expects {dims:?}")
+                        // The run's config.json builds the model, so the two disagree only
+                        // for weights written by a procl whose layers differ.
+                        format!(
+                            "`{key}` has shape {shape:?}, the model expects {dims:?} (weights \
+                             from a procl with other layers: retrain the run)"
+                        )
                     }
                     None => format!("missing tensor `{key}`"),
                 };
