@@ -49,7 +49,7 @@ class Encoder(nn.Module):
         self.features = nn.Conv2d(32, keypoints, 1)
         self.log_sharpness = nn.Parameter(torch.full((keypoints,), math.log(30.0)))
         self.polar, self.pairwise, self.k = polar, pairwise, keypoints
-        width = 2 * keypoints + (keypoints * (keypoints - 1) if pairwise else 0)
+        width = 2 * keypoints + (keypoints * (keypoints - 1) // 2 if pairwise else 0)
         self.hidden = nn.Linear(width, hidden) if hidden else None
         self.out = nn.Linear(hidden or width, du)
         side = 32 // second_stride
@@ -106,11 +106,8 @@ class Encoder(nn.Module):
             dot = x_k * x_j + y_k * y_j
             r2 = x_k**2 + y_k**2
             fade = hub_fade(r2)
-            pair_fade = fade * fade.reshape(n, 1, k)
-            norm = torch.sqrt(r2 * r2.reshape(n, 1, k) + 1e-12)
-            sin, cos = cross / norm * pair_fade, dot / norm * pair_fade
-            feats = torch.cat([feats, sin.reshape(n, k * k)[:, self.upper],
-                               cos.reshape(n, k * k)[:, self.upper]], dim=1)
+            angle = torch.atan2(cross, dot + 1e-12) * (fade * fade.reshape(n, 1, k))
+            feats = torch.cat([feats, angle.reshape(n, k * k)[:, self.upper]], dim=1)
         if self.hidden is not None:
             feats = torch.tanh(self.hidden(feats))
         return self.out(feats) @ self.transform.T

@@ -627,18 +627,11 @@ impl HostEncoder {
                         let r2 = e(key, 2).powi(2) + e(key, 3).powi(2);
                         r2 / (r2 + POLAR_FADE_RADIUS * POLAR_FADE_RADIUS)
                     };
-                    let r2 = |key: usize| e(key, 2).powi(2) + e(key, 3).powi(2);
-                    for part in 0..2 {
-                        for i in 0..k {
-                            for j in i + 1..k {
-                                let v = if part == 0 {
-                                    e(i, 2) * e(j, 3) - e(i, 3) * e(j, 2)
-                                } else {
-                                    e(i, 2) * e(j, 2) + e(i, 3) * e(j, 3)
-                                };
-                                let norm = (r2(i) * r2(j) + 1e-12).sqrt();
-                                feats.push(v / norm * fade(i) * fade(j));
-                            }
+                    for i in 0..k {
+                        for j in i + 1..k {
+                            let cross = e(i, 2) * e(j, 3) - e(i, 3) * e(j, 2);
+                            let dot = e(i, 2) * e(j, 2) + e(i, 3) * e(j, 3);
+                            feats.push(cross.atan2(dot + 1e-12) * fade(i) * fade(j));
                         }
                     }
                 }
