@@ -322,13 +322,16 @@ fn checkpoint_round_trip_gives_identical_outputs() {
     };
     assert_eq!(dyn_out(&loaded), dyn_out(&saved));
 
-    // A checkpoint of another architecture is refused by tensor name and shape.
+    // A checkpoint of another architecture is refused by tensor name and shape, with the fix.
     let mut wide = config.clone();
     wide.encoder.trunk_channels = [16, 8];
     let err = load_checkpoint(&path, wide.init(0, &device).unwrap(), &device)
         .unwrap_err()
         .to_string();
-    assert!(err.contains("shape") && err.contains("conv1"), "{err}");
+    assert!(
+        err.contains("shape") && err.contains("conv1") && err.contains("retrain"),
+        "{err}"
+    );
 }
 
 fn config_err(toml_text: &str) -> String {
