@@ -157,15 +157,14 @@ impl ModuleMapper for Restore<'_> {
             found => {
                 let what = match found {
                     Some((shape, _)) => {
-                        // The run's config.json builds the model, so the two disagree only
-                        // for weights written by a procl whose layers differ.
-                        format!(
-                            "`{key}` has shape {shape:?}, the model expects {dims:?} (weights \
-                             from a procl with other layers: retrain the run)"
-                        )
+                        format!("`{key}` has shape {shape:?}, the model expects {dims:?}")
                     }
                     None => format!("missing tensor `{key}`"),
                 };
+                // The run's config.json builds the model, so the two disagree only for weights
+                // written by a procl whose layers differ.
+                let what =
+                    format!("{what} (weights from a procl with other layers: retrain the run)");
                 self.error
                     .get_or_insert(Error::checkpoint(self.file.to_path_buf(), what));
                 param
