@@ -61,7 +61,12 @@ fn train_step(c: &mut Criterion) {
                 if let Some(trunk) = trunk {
                     trunk.backward(&mut grads);
                 }
-                model = Some(adam.step(config.learning_rate, current, &grads));
+                model = Some(adam.step(
+                    config.learning_rate,
+                    config.gradient_clip_percentile,
+                    current,
+                    &grads,
+                ));
                 step += 1;
             })
         });
@@ -115,7 +120,12 @@ fn nvae_train_step(c: &mut Criterion) {
                 let terms = elbo_loss(&current, nvae, inputs, 1.0, dt);
                 let mut grads = terms.total.backward();
                 terms.host_backward(tape).backward(&mut grads);
-                model = Some(adam.step(config.learning_rate, current, &grads));
+                model = Some(adam.step(
+                    config.learning_rate,
+                    config.gradient_clip_percentile,
+                    current,
+                    &grads,
+                ));
                 step += 1;
             })
         });

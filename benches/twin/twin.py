@@ -12,6 +12,7 @@ the quartiles of the step time in milliseconds.
 """
 
 import argparse
+import bisect
 import json
 import math
 import statistics
@@ -197,7 +198,19 @@ PRESETS = {
 }
 
 
-def train_step(enc, dyn, opt, frames, u, drive, cfg, n, du):
+def clip_to_percentile(params, norms, percentile=10.0):
+    """Scales the gradient down to the `percentile` of the run's global gradient norms so far
+    (`norms`, ascending, this step's included), as procl's trainer does (AutoClip)."""
+    grads = [p.grad for p in params if p.grad is not None]
+    norm = float(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads])))
+    bisect.insort(norms, norm)
+    threshold = norms[int(percentile / 100 * (len(norms) - 1) + 0.5)]
+    if norm > threshold:
+        for g in grads:
+            g.mul_(threshold / norm)
+
+
+def train_step(enc, dyn, opt, norms, frames, u, drive, cfg, n, du):
     h = enc(frames)
     h_prev, h_now, h_next = h[:n], h[n : 2 * n], h[2 * n : 3 * n]
     v_now = (h_now - h_prev) / DT
@@ -238,6 +251,7 @@ def train_step(enc, dyn, opt, frames, u, drive, cfg, n, du):
         total = total + 3.0 * sign_term(response, regressors, h_now, 6, 0.25)
     opt.zero_grad(set_to_none=True)
     total.backward()
+    clip_to_percentile([p for group in opt.param_groups for p in group["params"]], norms)
     opt.step()
 
 
@@ -264,11 +278,12 @@ def main():
         raw = torch.randint(0, 256, (frames_per_sample * n, 64, 64, 3), dtype=torch.uint8)
         u = torch.rand(n, du) * 2 - 1
         drive = torch.rand(n, du) * 2 - 1
+        norms = []
         for i in range(args.warmup + args.iters):
             start = time.perf_counter()
             # As procl does each step: u8 HWC frames to a [-0.5, 0.5] CHW batch.
             frames = raw.permute(0, 3, 1, 2).float() / 255.0 - 0.5
-            train_step(enc, dyn, opt, frames, u, drive, cfg, n, du)
+            train_step(enc, dyn, opt, norms, frames, u, drive, cfg, n, du)
             if i >= args.warmup:
                 times.append(time.perf_counter() - start)
     else:

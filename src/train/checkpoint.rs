@@ -25,6 +25,9 @@ pub struct Adam {
     pub step: u64,
     /// First and second moments, flattened, by parameter path.
     moments: BTreeMap<String, (Tensor<1>, Tensor<1>)>,
+    /// The global gradient norm of every clipped step so far, ascending: the history the
+    /// clipping threshold is a percentile of.
+    gradient_norms: Vec<f64>,
 }
 
 impl Default for Adam {
@@ -35,21 +38,79 @@ impl Default for Adam {
             epsilon: 1e-8,
             step: 0,
             moments: BTreeMap::new(),
+            gradient_norms: Vec::new(),
         }
     }
 }
 
 impl Adam {
-    /// Applies one update with learning rate `lr` to every parameter that has a gradient.
-    pub fn step<M: Module>(&mut self, lr: f64, module: M, grads: &Gradients) -> M {
+    /// Applies one update with learning rate `lr` to every parameter that has a gradient. With
+    /// `clip_percentile`, the gradient is first scaled down to that percentile of the global
+    /// norms of the run's gradients so far, this one's included (AutoClip, Seetharaman et al.
+    /// 2020): a step whose gradient spikes moves the weights no further than a typical one.
+    pub fn step<M: Module>(
+        &mut self,
+        lr: f64,
+        clip_percentile: Option<f64>,
+        module: M,
+        grads: &Gradients,
+    ) -> M {
         self.step += 1;
+        let scale = match clip_percentile {
+            Some(percentile) => {
+                let mut norm = GradientNorm { grads, sum: None };
+                module.visit(&mut norm);
+                let norm = norm
+                    .sum
+                    .map_or(0.0, |sum| f64::from(crate::model::to_vec(sum)[0]).sqrt());
+                clip_scale(&mut self.gradient_norms, norm, percentile)
+            }
+            None => 1.0,
+        };
         let mut mapper = AdamMapper {
             adam: self,
             grads,
             lr,
+            scale,
             path: vec![],
         };
         module.map(&mut mapper)
+    }
+}
+
+/// Records `norm` in the ascending history `norms` and returns the factor that brings it down
+/// to the history's `percentile` (nearest rank), or 1 where it is not above it. A non-finite
+/// norm is not recorded and not scaled: the step's loss then stops the run.
+fn clip_scale(norms: &mut Vec<f64>, norm: f64, percentile: f64) -> f64 {
+    if !norm.is_finite() {
+        return 1.0;
+    }
+    let at = norms.partition_point(|&x| x < norm);
+    norms.insert(at, norm);
+    let rank = (percentile / 100.0 * (norms.len() - 1) as f64).round() as usize;
+    let threshold = norms[rank.min(norms.len() - 1)];
+    if norm > threshold {
+        threshold / norm
+    } else {
+        1.0
+    }
+}
+
+/// Sums the squares of every parameter's gradient (one device scalar).
+struct GradientNorm<'a> {
+    grads: &'a Gradients,
+    sum: Option<Tensor<1>>,
+}
+
+impl ModuleVisitor for GradientNorm<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if let Some(grad) = param.val().grad(self.grads) {
+            let squares = grad.powi_scalar(2).sum();
+            self.sum = Some(match self.sum.take() {
+                Some(sum) => sum + squares,
+                None => squares,
+            });
+        }
     }
 }
 
@@ -57,6 +118,8 @@ struct AdamMapper<'a> {
     adam: &'a mut Adam,
     grads: &'a Gradients,
     lr: f64,
+    /// The clipping factor of this step's gradient.
+    scale: f64,
     path: Vec<String>,
 }
 
@@ -74,7 +137,7 @@ impl ModuleMapper for AdamMapper<'_> {
         };
         let dims = value.dims();
         let count: usize = dims.iter().product();
-        let grad = grad.reshape([count]);
+        let grad = grad.reshape([count]) * self.scale;
         let (b1, b2) = (self.adam.beta1, self.adam.beta2);
         let key = self.path.join(".");
         let (m, v) = match self.adam.moments.remove(&key) {
@@ -179,6 +242,9 @@ struct StoredMeta {
     #[serde(flatten)]
     meta: CheckpointMeta,
     adam_step: u64,
+    /// The clipping history ([`Adam`]), so that `--resume` clips as the uninterrupted run.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    gradient_norms: Vec<f64>,
 }
 
 /// What a checkpoint holds besides tensors.
@@ -249,6 +315,7 @@ pub fn save_checkpoint<M: Module>(
     let stored_meta = StoredMeta {
         meta: meta.clone(),
         adam_step: adam.map_or(0, |a| a.step),
+        gradient_norms: adam.map_or_else(Vec::new, |a| a.gradient_norms.clone()),
     };
     let json =
         serde_json::to_string(&stored_meta).map_err(|e| Error::checkpoint(path, e.to_string()))?;
@@ -334,6 +401,7 @@ pub fn load_checkpoint<M: Module>(
     }
     let mut adam = Adam {
         step: stored_meta.adam_step,
+        gradient_norms: stored_meta.gradient_norms,
         ..Adam::default()
     };
     for (name, (shape, values)) in &stored {
@@ -350,4 +418,29 @@ pub fn load_checkpoint<M: Module>(
         }
     }
     Ok((model, adam, meta))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::clip_scale;
+
+    #[test]
+    fn clipping_brings_a_spike_down_to_the_percentile_of_the_history() {
+        let mut norms = vec![];
+        // The first norm is its own history: nothing to clip.
+        assert_eq!(clip_scale(&mut norms, 4.0, 10.0), 1.0);
+        for norm in [2.0, 1.0, 3.0] {
+            clip_scale(&mut norms, norm, 50.0);
+        }
+        assert_eq!(norms, [1.0, 2.0, 3.0, 4.0]);
+        // History 1, 2, 3, 4, 100: the median (rank round(0.5 * 4) = 2) is 3.
+        assert_eq!(clip_scale(&mut norms, 100.0, 50.0), 0.03);
+        // 10th percentile of 1, 2, 3, 4, 5, 100: rank round(0.1 * 5) = 1, so 2.
+        assert_eq!(clip_scale(&mut norms, 5.0, 10.0), 0.4);
+        // Below the threshold: unscaled.
+        assert_eq!(clip_scale(&mut norms, 1.5, 100.0), 1.0);
+        // A non-finite norm is neither scaled nor kept.
+        assert_eq!(clip_scale(&mut norms, f64::NAN, 10.0), 1.0);
+        assert_eq!(norms, [1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 100.0]);
+    }
 }

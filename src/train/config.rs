@@ -102,6 +102,10 @@ pub struct TrainConfig {
     pub batch_size: usize,
     /// Adam learning rate.
     pub learning_rate: f64,
+    /// Scale each step's gradient down to this percentile of the run's gradient norms so far
+    /// (AutoClip; see [`crate::train::checkpoint::Adam::step`]); absent: no clipping.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gradient_clip_percentile: Option<f64>,
     /// Save a checkpoint every this many steps (and at the end).
     pub checkpoint_every: u64,
     /// Every this many steps, also keep the weights in `snapshots/step-NNNNNN/`, a run folder
@@ -341,6 +345,7 @@ impl TrainConfig {
             steps: training_budget(env),
             batch_size: 128,
             learning_rate: 1e-3,
+            gradient_clip_percentile: None,
             checkpoint_every: 500,
             snapshot_every: 0,
             orientation_search_every: 0,
@@ -440,6 +445,13 @@ impl TrainConfig {
                 config.loss.action_response_singular_floor = 0.25;
             }
         }
+        if preset == Preset::Procl && method != Method::Nvae {
+            // The sign term and the risk spike where a region's response to the action nearly
+            // vanishes, and one such step can turn the latent enough to erase a coordinate for
+            // good; clipped to the 10th percentile of the run's gradient norms, it moves the
+            // weights no further than a quiet step (docs/design.md, "Which parts are on where").
+            config.gradient_clip_percentile = Some(10.0);
+        }
         if env == EnvKind::Fetch {
             // The paper's dt_R for Fetch is 1 (the env's control dt for the 2-D envs).
             config.loss.lyapunov_dt_s = Some(1.0);
@@ -470,10 +482,6 @@ impl TrainConfig {
         config.control_dt_s = Some(control_dt_s);
         config.model.encoder.latent_dim = action_dim;
         config.model.dynamics.latent_dim = action_dim;
-        // On arms procl was not tuned on, training with each frame's own cut diverged on
-        // half the runs measured (docs/research/reacher.md, K), so custom data keeps the
-        // one cut.
-        config.model.encoder.polar_moving_cut = false;
         if let Some(nvae) = &mut config.nvae {
             nvae.latent_dim = action_dim;
         }
@@ -550,6 +558,14 @@ impl TrainConfig {
             return Err(Error::config(
                 "learning_rate",
                 format!("{} must be > 0", self.learning_rate),
+            ));
+        }
+        if let Some(percentile) = self.gradient_clip_percentile
+            && !(percentile > 0.0 && percentile <= 100.0)
+        {
+            return Err(Error::config(
+                "gradient_clip_percentile",
+                format!("{percentile} must be in (0, 100]"),
             ));
         }
         if self.checkpoint_every == 0 {
@@ -726,6 +742,7 @@ pub(crate) fn merge(base: &mut toml::Table, over: toml::Table) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::EncoderConfig;
 
     #[test]
     fn a_table_of_another_kind_replaces_the_base_and_one_of_the_same_kind_merges() {
@@ -772,9 +789,17 @@ mod tests {
             Recipe::Env(EnvKind::Reacher),
         );
         let reacher = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
-        assert_eq!(arm.model.encoder.head, reacher.model.encoder.head);
-        // Except each frame's own cut, which custom data does without.
-        assert!(reacher.model.encoder.polar_moving_cut && !arm.model.encoder.polar_moving_cut);
+        assert_eq!(
+            EncoderConfig {
+                latent_dim: reacher.model.encoder.latent_dim,
+                ..arm.model.encoder
+            },
+            reacher.model.encoder
+        );
+        assert_eq!(
+            arm.gradient_clip_percentile,
+            reacher.gradient_clip_percentile
+        );
         assert_eq!(
             LossConfig {
                 kd: reacher.loss.kd,

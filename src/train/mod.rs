@@ -350,7 +350,12 @@ fn run_training<O: Objective>(
         }
         let mut grads = total.backward();
         host.backward(&mut grads);
-        model = adam.step(config.learning_rate, model, &grads);
+        model = adam.step(
+            config.learning_rate,
+            config.gradient_clip_percentile,
+            model,
+            &grads,
+        );
         model = objective.after_update(model, step)?;
         let row: Vec<String> = values.values.iter().map(|x| format!("{x:.6}")).collect();
         writeln!(
