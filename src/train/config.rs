@@ -934,4 +934,23 @@ mod tests {
         let err = config.validate().unwrap_err().to_string();
         assert!(err.contains("orientation_tolerance"), "{err}");
     }
+
+    #[test]
+    fn a_clipping_percentile_outside_0_to_100_is_refused_by_name() {
+        for percentile in ["0.0", "-5.0", "100.5", "nan"] {
+            let table: toml::Table = format!("gradient_clip_percentile = {percentile}")
+                .parse()
+                .unwrap();
+            let err = config_from_table(table, EnvKind::PointMass, None)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains("gradient_clip_percentile"),
+                "{percentile}: {err}"
+            );
+        }
+        let table: toml::Table = "gradient_clip_percentile = 100.0".parse().unwrap();
+        let config = config_from_table(table, EnvKind::PointMass, None).unwrap();
+        assert_eq!(config.gradient_clip_percentile, Some(100.0));
+    }
 }
