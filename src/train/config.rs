@@ -446,10 +446,11 @@ impl TrainConfig {
             }
         }
         if preset == Preset::Procl && method != Method::Nvae {
-            // The sign term and the risk spike where a region's response to the action nearly
-            // vanishes, and one such step can turn the latent enough to erase a coordinate for
-            // good; clipped to the 10th percentile of the run's gradient norms, it moves the
-            // weights no further than a quiet step (docs/design.md, "Which parts are on where").
+            // A step's gradient can spike thousands of times over the median (angles between
+            // keypoints jumping by 2 pi, the sign term where a region's response nearly
+            // vanishes) and derail the run; clipped to the 10th percentile of the run's gradient
+            // norms, it moves the weights no further than a quiet step (docs/design.md,
+            // "Departures in every environment").
             config.gradient_clip_percentile = Some(10.0);
         }
         if env == EnvKind::Fetch {
@@ -482,6 +483,10 @@ impl TrainConfig {
         config.control_dt_s = Some(control_dt_s);
         config.model.encoder.latent_dim = action_dim;
         config.model.dynamics.latent_dim = action_dim;
+        // On arms procl was not tuned on, each frame's own cut lifts some seeds and erases the
+        // wrist on others, even with the gradient clipped (docs/research/one-recipe.md, E), so
+        // custom data keeps the one cut.
+        config.model.encoder.polar_moving_cut = false;
         if let Some(nvae) = &mut config.nvae {
             nvae.latent_dim = action_dim;
         }
@@ -789,9 +794,12 @@ mod tests {
             Recipe::Env(EnvKind::Reacher),
         );
         let reacher = TrainConfig::preset(Preset::Procl, Method::Procl, EnvKind::Reacher);
+        // Except each frame's own cut, which custom data does without.
+        assert!(reacher.model.encoder.polar_moving_cut && !arm.model.encoder.polar_moving_cut);
         assert_eq!(
             EncoderConfig {
                 latent_dim: reacher.model.encoder.latent_dim,
+                polar_moving_cut: true,
                 ..arm.model.encoder
             },
             reacher.model.encoder
