@@ -137,7 +137,13 @@ impl ModuleMapper for AdamMapper<'_> {
         };
         let dims = value.dims();
         let count: usize = dims.iter().product();
-        let grad = grad.reshape([count]) * self.scale;
+        let grad = grad.reshape([count]);
+        // An unclipped step (and every step of an unclipped run) skips the multiply.
+        let grad = if self.scale == 1.0 {
+            grad
+        } else {
+            grad * self.scale
+        };
         let (b1, b2) = (self.adam.beta1, self.adam.beta2);
         let key = self.path.join(".");
         let (m, v) = match self.adam.moments.remove(&key) {
