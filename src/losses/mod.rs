@@ -92,14 +92,6 @@ pub struct LossConfig {
     /// held fixed (its exact gradient where it is simple).
     #[serde(default)]
     pub action_response_singular_floor: f64,
-    /// Decorrelation term (0: off): adds this weight times the mean squared correlation
-    /// between distinct coordinates of `h_t` over the batch.
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub latent_decorrelation_weight: f64,
-}
-
-fn is_zero(value: &f64) -> bool {
-    *value == 0.0
 }
 
 fn default_action_response_horizon() -> usize {
@@ -140,7 +132,6 @@ impl Default for LossConfig {
             action_response_sign_weight: 0.0,
             action_response_regions: default_action_response_regions(),
             action_response_singular_floor: 0.0,
-            latent_decorrelation_weight: 0.0,
         }
     }
 }
@@ -420,7 +411,6 @@ pub fn procl_loss(
         u.clone(),
         ahead,
     );
-    let decorrelation = regularisers::decorrelation(h_now.clone());
     let v_now = (h_now.clone() - h_prev) / dt;
     let h_next_noisy = h_next.clone() + latent_noise * config.latent_noise_std;
     let v_next_noisy = (h_next_noisy.clone() - h_now.clone()) / dt;
@@ -489,8 +479,7 @@ pub fn procl_loss(
         + curv.clone() * config.lambda_curv;
     let total = pc3 * config.lambda_pc3
         + lyap.clone() * config.lambda_r
-        + sign.clone() * config.action_response_sign_weight
-        + decorrelation * config.latent_decorrelation_weight;
+        + sign.clone() * config.action_response_sign_weight;
     LossTerms {
         cpc,
         cons,

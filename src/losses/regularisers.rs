@@ -16,20 +16,6 @@ pub(super) fn batch_std(h: Tensor<2>) -> Tensor<2> {
         .sqrt()
 }
 
-/// The mean squared correlation between distinct columns of `h [n, d]` over its rows (0 for
-/// `d < 2`).
-pub(super) fn decorrelation(h: Tensor<2>) -> Tensor<1> {
-    let [n, d] = h.dims();
-    let device = h.device();
-    if d < 2 {
-        return Tensor::zeros([1], &device);
-    }
-    let standardised = (h.clone() - h.clone().mean_dim(0)) / batch_std(h);
-    let correlation = standardised.clone().transpose().matmul(standardised) / n as f64;
-    let off_diagonal = correlation * (Tensor::<2>::eye(d, &device).neg() + 1.0);
-    (off_diagonal.powi_scalar(2).sum() / (d * (d - 1)) as f64).reshape([1])
-}
-
 /// `a` and `x` centred over their rows, and the inverse of the centred `x^T x` solved on the
 /// host in f64 (nalgebra): the start of every least-squares fit `a ~ x B + c` here. `None` when
 /// `x` is degenerate (no fit to judge).
